@@ -1,0 +1,39 @@
+# Two commands on a fresh machine: `make demo` and `make test`.
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+DEMO   := build/demo
+SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+# Debian's headless EGL + Mesa software rasteriser (llvmpipe); no GPU or display needed.
+EGL_PACKAGES := libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri
+
+.PHONY: demo test setup egl clean
+
+setup: $(STAMP) egl
+
+$(PY):
+	python3 -m venv $(VENV)
+
+$(STAMP): pyproject.toml | $(PY)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+# Installs the system libraries only when a headless GL context cannot be made.
+egl: $(STAMP)
+	@$(PY) -c "from surfelwarp.gl.context import gl_context; gl_context()" 2>/dev/null || { \
+	  echo "Installing EGL/Mesa system libraries: $(EGL_PACKAGES)"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq $(EGL_PACKAGES) >/dev/null; \
+	  $(PY) -c "from surfelwarp.gl.context import gl_context; gl_context()"; }
+
+demo: setup
+	$(PY) -m surfelwarp synth sheet --out $(DEMO)/sheet --frames 40
+	$(PY) -m surfelwarp run $(DEMO)/sheet --out $(DEMO)/run
+	$(PY) -m surfelwarp eval $(DEMO)/run $(DEMO)/sheet
+	@echo "Demo outputs: $(DEMO)/run (live/*.ply, model.ply, metrics.json, eval.json)"
+
+test: setup
+	$(PY) -m pytest -q
+
+clean:
+	rm -rf $(VENV) build

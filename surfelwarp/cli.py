@@ -1,0 +1,104 @@
+"""`surfelwarp` command line: run, synth, eval."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from .errors import GLUnavailableError, InputError
+
+METHODS = ("observe",)
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def _add_run_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", type=Path, help="sequence folder (any layout of CONTRACT.md)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--method", choices=METHODS, default="observe")
+    p.add_argument("--save-every", type=_positive_int, default=10, metavar="K",
+                   help="write live/frame-%%06d.ply every K processed frames (and the last)")
+    p.add_argument("--intrinsics", metavar="FX,FY,CX,CY", help="override the intrinsics file")
+    p.add_argument("--depth-scale", type=float, default=1000.0, help="PNG units per metre (default 1000)")
+    p.add_argument("--clip-near", type=float, default=None, metavar="M", help="near clip, metres (default 0.1)")
+    p.add_argument("--clip-far", type=float, default=None, metavar="M", help="far clip, metres (default 3.0)")
+    p.add_argument("--start", type=int, default=0, metavar="FRAME", help="first frame index to process")
+    p.add_argument("--max-frames", type=_positive_int, default=None, metavar="N")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from .observation import PreprocessParams
+    from .observe import ObserveMethod
+    from .run import run_sequence
+    from .sequence import open_sequence, parse_intrinsics_flag
+
+    intrinsics = parse_intrinsics_flag(args.intrinsics) if args.intrinsics else None
+    seq = open_sequence(args.input, intrinsics=intrinsics, depth_scale=args.depth_scale,
+                        start=args.start, max_frames=args.max_frames)
+    params = PreprocessParams()
+    if args.clip_near is not None:
+        params = replace(params, clip_near_m=args.clip_near)
+    if args.clip_far is not None:
+        params = replace(params, clip_far_m=args.clip_far)
+    if not 0 <= params.clip_near_m < params.clip_far_m:
+        raise InputError(None, f"--clip-near {params.clip_near_m} must be >= 0 and below --clip-far {params.clip_far_m}")
+    out = args.out
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "output path exists and is not a folder")
+    method = ObserveMethod()
+    input_config = {"layout": seq.layout, "depth_scale": seq.depth_scale, "start": args.start,
+                    "max_frames": args.max_frames, "intrinsics": {
+                        k: getattr(seq.intrinsics, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}}
+    outputs = run_sequence(seq, out, method, save_every=args.save_every, preprocess_params=params,
+                           input_config=input_config, progress=False if args.no_progress else None)
+    s = outputs.summary()
+    print(f"{s['frames']} frames, median {s['median_frame_seconds'] * 1000:.0f} ms/frame, "
+          f"peak {s['peak_rss_mb']:.0f} MB; outputs in {out}/ (live/, model.ply, metrics.json)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="surfelwarp", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="reconstruct a depth sequence")
+    _add_run_arguments(run)
+    run.set_defaults(func=cmd_run)
+    try:
+        from .data_tools import evaluate, synth
+    except ImportError:
+        pass
+    else:
+        p = sub.add_parser("synth", help="render a synthetic sequence with ground truth")
+        synth.add_arguments(p)
+        p.set_defaults(func=synth.run)
+        p = sub.add_parser("eval", help="evaluate a run against a sequence's ground truth")
+        evaluate.add_arguments(p)
+        p.set_defaults(func=evaluate.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except InputError as exc:
+        print(f"surfelwarp: error: {exc}", file=sys.stderr)
+        return 2
+    except GLUnavailableError as exc:
+        print(f"surfelwarp: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("surfelwarp: interrupted; outputs written so far are complete", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,152 @@
+"""Rigid camera alignment by projective point-to-plane ICP, coarse to fine (KinectFusion).
+
+SurfelWarp (Sec. VII) aligns the depth observation rigidly to the rendered model before the
+non-rigid estimation. Each observation vertex is moved to world with the current estimate,
+projected into the camera the model maps were rendered from, and paired with the model surfel
+at that pixel; pairs far apart or with disagreeing normals are dropped. Each iteration solves
+the 6x6 normal equations of sum (n_model . (T v_obs - v_model))^2 for a twist xi = (omega, v)
+and left-composes T <- exp(xi) T.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import Intrinsics
+from .observation import CameraObservation
+from .se3 import invert, se3_exp
+
+
+@dataclass(frozen=True)
+class RigidParams:
+    pyramid_levels: int = 3
+    iterations: tuple[int, ...] = (10, 5, 4)                 # per level, coarse to fine
+    distance_gate_m: tuple[float, ...] = (0.1, 0.05, 0.025)  # per level, coarse to fine
+    min_normal_cos: float = 0.8                               # normals within ~37 deg
+    min_correspondences: int = 100
+    stop_rotation_rad: float = 1e-5                           # an increment this small ends a level
+    stop_translation_m: float = 1e-5
+
+
+@dataclass(frozen=True)
+class RigidResult:
+    T_camera_to_world: np.ndarray
+    iterations: int          # total over all levels
+    energy: float            # mean squared point-to-plane residual at the result, m^2
+    rmse_m: float
+    inliers: int             # correspondences at the finest level at the result
+    converged: bool
+
+
+@dataclass(frozen=True)
+class _Level:
+    obs_vertex: np.ndarray   # (N, 3) valid observation vertices, camera frame
+    obs_normal: np.ndarray
+    model_vertex: np.ndarray  # (H*W, 3) world
+    model_normal: np.ndarray
+    model_valid: np.ndarray   # (H*W,)
+    intrinsics: Intrinsics
+    gate_m: float
+    iterations: int
+
+
+def halved(intrinsics: Intrinsics) -> Intrinsics:
+    """Intrinsics of the map subsampled as map[::2, ::2]: coarse pixel j is fine pixel 2j."""
+    return Intrinsics(intrinsics.fx / 2, intrinsics.fy / 2, intrinsics.cx / 2, intrinsics.cy / 2,
+                      (intrinsics.width + 1) // 2, (intrinsics.height + 1) // 2)
+
+
+def _levels(model_vertex, model_normal, observation, model_intrinsics, params) -> list[_Level]:
+    """Pyramid levels from coarse to fine."""
+    mv, mn = np.asarray(model_vertex, np.float32), np.asarray(model_normal, np.float32)
+    ov, on, ok = observation.vertex_map, observation.normal_map, observation.valid
+    intr = model_intrinsics
+    levels = []
+    for level in range(params.pyramid_levels):
+        h, w = mv.shape[:2]
+        # Empty model pixels are zero; a real surfel has a unit normal.
+        mvalid = np.einsum("ijk,ijk->ij", mn, mn) > 0.25
+        k = params.pyramid_levels - 1 - level
+        levels.append(_Level(ov[ok], on[ok], mv.reshape(-1, 3), mn.reshape(-1, 3), mvalid.reshape(-1),
+                             intr.with_size(w, h), params.distance_gate_m[k], params.iterations[k]))
+        mv, mn, intr = mv[::2, ::2], mn[::2, ::2], halved(intr)
+        ov, on, ok = ov[::2, ::2], on[::2, ::2], ok[::2, ::2]
+    return levels[::-1]
+
+
+def _associate(level: _Level, T: np.ndarray, T_world_to_model: np.ndarray, min_normal_cos: float):
+    """World observation points, model normals and residuals of the gated projective pairs."""
+    R, t = T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
+    p = level.obs_vertex @ R.T + t
+    Rm, tm = T_world_to_model[:3, :3].astype(np.float32), T_world_to_model[:3, 3].astype(np.float32)
+    q = p @ Rm.T + tm
+    intr = level.intrinsics
+    z = q[:, 2]
+    front = z > 1e-6
+    zs = np.where(front, z, 1.0)
+    u = np.rint(intr.fx * q[:, 0] / zs + intr.cx).astype(np.int64)
+    v = np.rint(intr.fy * q[:, 1] / zs + intr.cy).astype(np.int64)
+    inside = front & (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
+    pixel = np.where(inside, v * intr.width + u, 0)
+    keep = inside & level.model_valid[pixel]
+    pixel, p = pixel[keep], p[keep]
+    vm, nm = level.model_vertex[pixel], level.model_normal[pixel]
+    d = p - vm
+    n_obs = level.obs_normal[keep] @ R.T
+    keep = (np.einsum("ij,ij->i", d, d) < level.gate_m ** 2) & (np.einsum("ij,ij->i", n_obs, nm) > min_normal_cos)
+    p, nm = p[keep], nm[keep]
+    return p, nm, np.einsum("ij,ij->i", nm, d[keep])
+
+
+def _step(p: np.ndarray, n: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Gauss-Newton twist for exp(xi) p: d(n . (p + omega x p + v)) / d(omega, v) = (p x n, n)."""
+    J = np.empty((len(p), 6))
+    J[:, 0] = p[:, 1] * n[:, 2] - p[:, 2] * n[:, 1]
+    J[:, 1] = p[:, 2] * n[:, 0] - p[:, 0] * n[:, 2]
+    J[:, 2] = p[:, 0] * n[:, 1] - p[:, 1] * n[:, 0]
+    J[:, 3:] = n
+    # Least squares on the 6x6 system: directions the geometry does not constrain (a lone
+    # plane) get no update instead of a huge one.
+    return np.linalg.lstsq(J.T @ J, -(J.T @ r.astype(np.float64)), rcond=1e-10)[0]
+
+
+def rigid_icp(model_vertex_map: np.ndarray, model_normal_map: np.ndarray, T_model_camera_to_world: np.ndarray,
+              observation: CameraObservation, T_init_camera_to_world: np.ndarray,
+              params: RigidParams = RigidParams(), model_intrinsics: Intrinsics | None = None) -> RigidResult:
+    """Camera-to-world pose of `observation` aligned to world-frame model maps.
+
+    The model maps (H, W, 3), zero where empty, were rendered from T_model_camera_to_world with
+    `model_intrinsics` (default: the observation's camera, which then needs the same size).
+    """
+    if len(params.iterations) != params.pyramid_levels or len(params.distance_gate_m) != params.pyramid_levels:
+        raise ValueError("iterations and distance_gate_m need one entry per pyramid level")
+    h, w = np.shape(model_vertex_map)[:2]
+    if model_intrinsics is None:
+        if (h, w) != observation.valid.shape:
+            raise ValueError("model maps differ in size from the observation: pass model_intrinsics")
+        model_intrinsics = observation.intrinsics
+    T_init = np.asarray(T_init_camera_to_world, np.float64)
+    T_world_to_model = invert(np.asarray(T_model_camera_to_world, np.float64))
+    levels = _levels(model_vertex_map, model_normal_map, observation, model_intrinsics, params)
+
+    T, total, settled = T_init.copy(), 0, False
+    for level in levels:
+        settled = False
+        for _ in range(level.iterations):
+            p, n, r = _associate(level, T, T_world_to_model, params.min_normal_cos)
+            if len(r) < params.min_correspondences:
+                break
+            xi = _step(p, n, r)
+            T = se3_exp(xi) @ T
+            total += 1
+            settled = (np.linalg.norm(xi[:3]) < params.stop_rotation_rad
+                       and np.linalg.norm(xi[3:]) < params.stop_translation_m)
+            if settled:
+                break
+
+    _, _, r = _associate(levels[-1], T, T_world_to_model, params.min_normal_cos)
+    if len(r) < params.min_correspondences:
+        return RigidResult(T_init, total, float("nan"), float("nan"), len(r), False)
+    energy = float(np.mean(r.astype(np.float64) ** 2))
+    return RigidResult(T, total, energy, float(np.sqrt(energy)), len(r), settled)

@@ -1,0 +1,58 @@
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def shared_data(name: str) -> Path:
+    path = SHARED_DATA / name
+    if not path.is_dir():
+        pytest.skip(f"{path} is absent")
+    return path
+
+
+def sphere_depth_mm(frame: int, size=(64, 48), f=60.0) -> np.ndarray:
+    """A sphere in front of a wall at 1.5 m, moving right one pixel a frame: analytic depth in mm."""
+    w, h = size
+    u, v = np.meshgrid(np.arange(w) - w / 2, np.arange(h) - h / 2)
+    rays = np.stack([u / f, v / f, np.ones_like(u, dtype=float)], -1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    centre = np.array([0.02 * frame, 0.0, 1.0])
+    b = rays @ centre
+    disc = b * b - (centre @ centre - 0.2 ** 2)
+    t = np.where(disc > 0, b - np.sqrt(np.maximum(disc, 0)), np.inf)
+    z = np.minimum(t * rays[..., 2], 1.5)
+    return np.round(z * 1000).astype(np.uint16)
+
+
+LAYOUT_FILES = {
+    "volumedeform": ("frame-{:06d}.depth.png", "depthIntrinsics.txt"),
+    "7scenes": ("frame-{:06d}.depth.png", "camera-intrinsics.txt"),
+    "deepdeform": ("depth/{:06d}.png", "intrinsics.txt"),
+    "killingfusion": ("depth_{:06d}.png", "intrinsics_kinect1.txt"),
+}
+
+
+def write_sequence(root: Path, layout: str = "volumedeform", frames=range(3), size=(64, 48),
+                   four_by_four: bool = False) -> Path:
+    depth_name, intrinsics_name = LAYOUT_FILES[layout]
+    root.mkdir(parents=True, exist_ok=True)
+    for i in frames:
+        path = root / depth_name.format(i)
+        path.parent.mkdir(exist_ok=True)
+        cv2.imwrite(str(path), sphere_depth_mm(i, size))
+    K = np.array([[60.0, 0, size[0] / 2], [0, 60.0, size[1] / 2], [0, 0, 1]])
+    if four_by_four:
+        K4 = np.eye(4)
+        K4[:3, :3] = K
+        K = K4
+    np.savetxt(root / intrinsics_name, K)
+    return root
+
+
+@pytest.fixture
+def sequence(tmp_path) -> Path:
+    return write_sequence(tmp_path / "seq")

@@ -1,0 +1,63 @@
+import cv2
+import numpy as np
+import pytest
+
+from surfelwarp.camera import Intrinsics
+from surfelwarp.observation import PreprocessParams, preprocess
+from surfelwarp.sequence import open_sequence
+
+from conftest import shared_data
+
+
+def plane_depth(intr: Intrinsics, normal, offset):
+    """Depth of the plane n.x = offset seen by every pixel."""
+    u, v = np.meshgrid(np.arange(intr.width), np.arange(intr.height))
+    rays = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones(u.shape)], -1)
+    return (offset / (rays @ normal)).astype(np.float32)
+
+
+def test_plane_normals_vertices_and_radii():
+    intr = Intrinsics(500, 500, 159.5, 119.5, 320, 240)
+    n = np.array([0.3, -0.2, -1.0])
+    n /= np.linalg.norm(n)
+    depth = plane_depth(intr, n, -1.2 * -n[2])
+    obs = preprocess(depth, intr, 0, 0)
+    assert obs.valid.sum() > 0.8 * 320 * 240
+    # The bilateral window is one-sided within its radius of a hole, which tilts the normal there.
+    v = cv2.erode(obs.valid.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    np.testing.assert_allclose(obs.normal_map[v], np.broadcast_to(n, (v.sum(), 3)), atol=1e-3)
+    # Vertices lie on the plane (the bilateral filter keeps a plane a plane).
+    np.testing.assert_allclose(obs.vertex_map[v] @ n, n[2] * -1.2 * -1, atol=2e-4)
+    expected_r = np.sqrt(2) * obs.depth_m[v] / (500 * abs(n[2]))
+    np.testing.assert_allclose(obs.radius_map[v], expected_r, rtol=1e-3)
+
+
+def test_clipping_and_crop():
+    intr = Intrinsics(500, 500, 159.5, 119.5, 320, 240)
+    depth = np.full((240, 320), 2.0, np.float32)
+    depth[:, 200:] = 5.0
+    obs = preprocess(depth, intr, 0, 0, PreprocessParams(clip_far_m=3.0, boundary_crop_px=7))
+    assert not obs.valid[:, 199:].any() and not obs.valid[:8].any() and not obs.valid[:, :8].any()
+    assert obs.valid[8:-8, 8:199].all()
+
+
+def test_snoopy_frame0_within_paper_ranges():
+    seq = open_sequence(shared_data("snoopy-pair"))
+    frame, depth = next(seq.frames())
+    obs = preprocess(depth, seq.intrinsics, frame.index, 0)
+    v = obs.valid
+    assert v.sum() > 50_000
+    normals = obs.normal_map[v]
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    # Normals face the camera.
+    assert (np.sum(normals * obs.vertex_map[v], axis=1) <= 0).all()
+    # c = exp(-gamma^2 / (2 * 0.6^2)) with gamma in [0, 1].
+    c = obs.confidence_map[v]
+    assert c.min() >= np.exp(-1 / (2 * 0.36)) - 1e-6 and c.max() <= 1.0
+    # r = sqrt(2) d / (f |n_z|), |n_z| clamped at cos 75 deg.
+    ratio = obs.radius_map[v] * seq.intrinsics.focal_px / (np.sqrt(2) * obs.depth_m[v])
+    assert ratio.min() >= 1 - 1e-5 and ratio.max() <= 1 / np.cos(np.deg2rad(75)) + 1e-4
+    assert (ratio > 1 / np.cos(np.deg2rad(74))).any(), "some grazing views should be clamped"
+    # Depth is clipped to the default range and invalid pixels carry no surfel.
+    assert obs.depth_m[v].min() >= 0.1 and obs.depth_m[v].max() <= 3.0
+    assert (obs.radius_map[~v] == 0).all() and (obs.confidence_map[~v] == 0).all()
