@@ -25,8 +25,8 @@ class RigidParams:
     distance_gate_m: tuple[float, ...] = (0.1, 0.05, 0.025)  # per level, coarse to fine
     min_normal_cos: float = 0.8                               # normals within ~37 deg
     min_correspondences: int = 100
-    stop_rotation_rad: float = 1e-5                           # an increment this small ends a level
-    stop_translation_m: float = 1e-5
+    stop_rotation_rad: float = 5e-5                           # an increment this small ends a level
+    stop_translation_m: float = 5e-5
 
 
 @dataclass(frozen=True)
@@ -41,9 +41,11 @@ class RigidResult:
 
 @dataclass(frozen=True)
 class _Level:
-    obs_vertex: np.ndarray   # (N, 3) valid observation vertices, camera frame
+    # Component-major (3, N) arrays: gathers and compactions along the last axis are the
+    # fast ones in numpy.
+    obs_vertex: np.ndarray    # (3, N) valid observation vertices, camera frame
     obs_normal: np.ndarray
-    model_vertex: np.ndarray  # (H*W, 3) world
+    model_vertex: np.ndarray  # (3, H*W) world
     model_normal: np.ndarray
     model_valid: np.ndarray   # (H*W,)
     intrinsics: Intrinsics
@@ -57,6 +59,10 @@ def halved(intrinsics: Intrinsics) -> Intrinsics:
                       (intrinsics.width + 1) // 2, (intrinsics.height + 1) // 2)
 
 
+def _columns(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a.reshape(-1, 3).T, dtype=np.float32)
+
+
 def _levels(model_vertex, model_normal, observation, model_intrinsics, params) -> list[_Level]:
     """Pyramid levels from coarse to fine."""
     mv, mn = np.asarray(model_vertex, np.float32), np.asarray(model_normal, np.float32)
@@ -68,47 +74,51 @@ def _levels(model_vertex, model_normal, observation, model_intrinsics, params) -
         # Empty model pixels are zero; a real surfel has a unit normal.
         mvalid = np.einsum("ijk,ijk->ij", mn, mn) > 0.25
         k = params.pyramid_levels - 1 - level
-        levels.append(_Level(ov[ok], on[ok], mv.reshape(-1, 3), mn.reshape(-1, 3), mvalid.reshape(-1),
+        levels.append(_Level(_columns(ov[ok]), _columns(on[ok]), _columns(mv), _columns(mn), mvalid.reshape(-1),
                              intr.with_size(w, h), params.distance_gate_m[k], params.iterations[k]))
         mv, mn, intr = mv[::2, ::2], mn[::2, ::2], halved(intr)
         ov, on, ok = ov[::2, ::2], on[::2, ::2], ok[::2, ::2]
     return levels[::-1]
 
 
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
 def _associate(level: _Level, T: np.ndarray, T_world_to_model: np.ndarray, min_normal_cos: float):
-    """World observation points, model normals and residuals of the gated projective pairs."""
-    R, t = T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
-    p = level.obs_vertex @ R.T + t
-    Rm, tm = T_world_to_model[:3, :3].astype(np.float32), T_world_to_model[:3, 3].astype(np.float32)
-    q = p @ Rm.T + tm
+    """World observation points (3, M), model normals (3, M) and residuals (M,) of the gated
+    projective pairs."""
+    R, t = T[:3, :3].astype(np.float32), T[:3, 3:].astype(np.float32)
+    p = R @ level.obs_vertex + t
+    q = T_world_to_model[:3, :3].astype(np.float32) @ p + T_world_to_model[:3, 3:].astype(np.float32)
     intr = level.intrinsics
-    z = q[:, 2]
-    front = z > 1e-6
-    zs = np.where(front, z, 1.0)
-    u = np.rint(intr.fx * q[:, 0] / zs + intr.cx).astype(np.int64)
-    v = np.rint(intr.fy * q[:, 1] / zs + intr.cy).astype(np.int64)
+    front = q[2] > 1e-6
+    inv_z = 1.0 / np.where(front, q[2], 1.0)
+    u = np.rint(intr.fx * q[0] * inv_z + intr.cx).astype(np.int64)
+    v = np.rint(intr.fy * q[1] * inv_z + intr.cy).astype(np.int64)
     inside = front & (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
     pixel = np.where(inside, v * intr.width + u, 0)
-    keep = inside & level.model_valid[pixel]
-    pixel, p = pixel[keep], p[keep]
-    vm, nm = level.model_vertex[pixel], level.model_normal[pixel]
+    vm = np.take(level.model_vertex, pixel, axis=1)
+    nm = np.take(level.model_normal, pixel, axis=1)
     d = p - vm
-    n_obs = level.obs_normal[keep] @ R.T
-    keep = (np.einsum("ij,ij->i", d, d) < level.gate_m ** 2) & (np.einsum("ij,ij->i", n_obs, nm) > min_normal_cos)
-    p, nm = p[keep], nm[keep]
-    return p, nm, np.einsum("ij,ij->i", nm, d[keep])
+    n_obs = R @ level.obs_normal
+    keep = (inside & np.take(level.model_valid, pixel) & (_dot(d, d) < level.gate_m ** 2)
+            & (_dot(n_obs, nm) > min_normal_cos))
+    p, nm, d = (np.compress(keep, a, axis=1) for a in (p, nm, d))
+    return p, nm, _dot(nm, d)
 
 
 def _step(p: np.ndarray, n: np.ndarray, r: np.ndarray) -> np.ndarray:
     """Gauss-Newton twist for exp(xi) p: d(n . (p + omega x p + v)) / d(omega, v) = (p x n, n)."""
-    J = np.empty((len(p), 6))
-    J[:, 0] = p[:, 1] * n[:, 2] - p[:, 2] * n[:, 1]
-    J[:, 1] = p[:, 2] * n[:, 0] - p[:, 0] * n[:, 2]
-    J[:, 2] = p[:, 0] * n[:, 1] - p[:, 1] * n[:, 0]
-    J[:, 3:] = n
+    p, n = p.astype(np.float64), n.astype(np.float64)
+    J = np.empty((6, p.shape[1]))
+    J[0] = p[1] * n[2] - p[2] * n[1]
+    J[1] = p[2] * n[0] - p[0] * n[2]
+    J[2] = p[0] * n[1] - p[1] * n[0]
+    J[3:] = n
     # Least squares on the 6x6 system: directions the geometry does not constrain (a lone
     # plane) get no update instead of a huge one.
-    return np.linalg.lstsq(J.T @ J, -(J.T @ r.astype(np.float64)), rcond=1e-10)[0]
+    return np.linalg.lstsq(J @ J.T, -(J @ r.astype(np.float64)), rcond=1e-10)[0]
 
 
 def rigid_icp(model_vertex_map: np.ndarray, model_normal_map: np.ndarray, T_model_camera_to_world: np.ndarray,

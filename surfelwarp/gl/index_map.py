@@ -51,13 +51,15 @@ class GrowingBuffer:
 
 
 class _Targets:
-    """Framebuffer of one size: index (R32I), vertex and normal (RGBA32F) and a depth buffer."""
+    """Framebuffer of one size: index (R32I), vertex and normal (RGBA32F, read back as RGB),
+    confidence (R32F) and a depth buffer."""
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int):
         size = (width, height)
         self.attachments = [ctx.renderbuffer(size, components=1, dtype="i4"),
                             ctx.renderbuffer(size, components=4, dtype="f4"),
-                            ctx.renderbuffer(size, components=4, dtype="f4")]
+                            ctx.renderbuffer(size, components=4, dtype="f4"),
+                            ctx.renderbuffer(size, components=1, dtype="f4")]
         self.depth = ctx.depth_renderbuffer(size)
         self.fbo = ctx.framebuffer(self.attachments, self.depth)
 
@@ -84,7 +86,8 @@ class _Renderer:
             self.vao_key = key
         return self.vao
 
-    def render(self, positions, normals, confidence, intr: Intrinsics, near: float, far: float):
+    def render(self, positions, normals, confidence, intr: Intrinsics, near: float, far: float,
+               with_confidence: bool):
         width, height = intr.width, intr.height
         n = len(positions)
         self.buffers["position"].upload(positions)
@@ -101,17 +104,29 @@ class _Renderer:
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         ctx.enable_only(moderngl.DEPTH_TEST)
         ctx.depth_func = "<"
+        ctx.point_size = 1.0
         prog = self.program
         prog["u_K"].value = (intr.fx, intr.fy, intr.cx, intr.cy)
         prog["u_size"].value = (float(width), float(height))
         prog["u_near_far"].value = (near, far)
         if n:
             self._vertex_array().render(moderngl.POINTS, vertices=n)
-        index = np.frombuffer(fbo.read(components=1, attachment=0, dtype="i4"), np.int32)
-        vertex = np.frombuffer(fbo.read(components=4, attachment=1, dtype="f4"), np.float32)
-        normal = np.frombuffer(fbo.read(components=4, attachment=2, dtype="f4"), np.float32)
-        return (index.reshape(height, width) - 1, vertex.reshape(height, width, 4),
-                normal.reshape(height, width, 4))
+        index = read_attachment(fbo, 0, 1, "i4", height, width)
+        index -= 1
+        return (index,
+                read_attachment(fbo, 1, 3, "f4", height, width),
+                read_attachment(fbo, 2, 3, "f4", height, width),
+                read_attachment(fbo, 3, 1, "f4", height, width) if with_confidence else None)
+
+
+def read_attachment(fbo: moderngl.Framebuffer, attachment: int, components: int, dtype: str,
+                    height: int, width: int, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """An (H, W[, C]) block of one attachment as a fresh writable array. GL's bottom row comes
+    first, which is image row 0 because the shaders map image row v to GL row v."""
+    out = np.empty((height, width) if components == 1 else (height, width, components), dtype)
+    fbo.read_into(out, viewport=(*origin, width, height), components=components,
+                  attachment=attachment, dtype=dtype)
+    return out
 
 
 _renderers: dict[int, _Renderer] = {}
@@ -131,6 +146,8 @@ def render_index_map(positions: np.ndarray, normals: np.ndarray, intrinsics: Int
 
     Surfels with depth outside (near_m, far_m), behind the camera, or off the grid are dropped.
     """
+    if int(supersample) != supersample or supersample < 1:
+        raise ValueError(f"supersample must be a positive integer, not {supersample}")
     intr = intrinsics.supersampled(int(supersample))
     if intr.width <= 0 or intr.height <= 0:
         raise ValueError("intrinsics need a width and height")
@@ -142,7 +159,7 @@ def render_index_map(positions: np.ndarray, normals: np.ndarray, intrinsics: Int
             else np.asarray(confidence, np.float32).reshape(-1))
     if len(conf) != len(positions):
         raise ValueError("confidence and positions differ in length")
-    index, vertex4, normal4 = _renderer().render(positions, normals, conf, intr, near_m, far_m)
-    return FusionMaps(index=index, vertex=vertex4[..., :3], normal=normal4[..., :3],
-                      supersample=int(supersample), intrinsics=intr,
-                      confidence=None if confidence is None else vertex4[..., 3])
+    index, vertex, normal, conf_map = _renderer().render(positions, normals, conf, intr, near_m, far_m,
+                                                         confidence is not None)
+    return FusionMaps(index=index, vertex=vertex, normal=normal, supersample=int(supersample),
+                      intrinsics=intr, confidence=conf_map)

@@ -1,0 +1,138 @@
+"""Solver maps (SurfelWarp Sec. VII): surfels rendered as opaque disk splats at depth resolution.
+
+Each pixel holds the index, camera-frame position and normal of the surfel whose disk the pixel's
+ray meets first; the depth test uses the ray/disk intersection depth, so overlapping splats
+resolve per pixel.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import moderngl
+import numpy as np
+
+from ..camera import Intrinsics
+from .context import gl_context
+from .index_map import FAR_M, NEAR_M, GrowingBuffer, read_attachment
+from .shaders import load_program
+
+MARGIN_PX = 32        # disks whose sprite centre falls this far off the image still draw
+MIN_COS = 0.05        # grazing-ray clamp of |cos(ray, normal)| (about 87 degrees)
+
+
+@dataclass(frozen=True)
+class SolverMaps:
+    """(H, W[, 3]) maps, row 0 = top image row. Empty pixels: index -1, zero vectors."""
+    index: np.ndarray        # int32, index into the full surfel array
+    vertex: np.ndarray       # float32, surfel centre, camera frame
+    normal: np.ndarray       # float32, surfel normal
+    intrinsics: Intrinsics
+
+
+class _Targets:
+    def __init__(self, ctx: moderngl.Context, width: int, height: int):
+        size = (width, height)
+        self.attachments = [ctx.renderbuffer(size, components=1, dtype="i4"),
+                            ctx.renderbuffer(size, components=4, dtype="f4"),
+                            ctx.renderbuffer(size, components=4, dtype="f4")]
+        self.depth = ctx.depth_renderbuffer(size)
+        self.fbo = ctx.framebuffer(self.attachments, self.depth)
+
+
+class _Renderer:
+    def __init__(self, ctx: moderngl.Context):
+        self.ctx = ctx
+        self.program = load_program(ctx, vertex="surfel_splat.vert.glsl",
+                                    fragment="surfel_splat.frag.glsl")
+        self.buffers = {name: GrowingBuffer(ctx) for name in ("position", "normal", "radius", "element")}
+        self.vao: moderngl.VertexArray | None = None
+        self.vao_key = None
+        self.targets: dict[tuple[int, int], _Targets] = {}
+        self.max_point_size = float(ctx.info["GL_POINT_SIZE_RANGE"][1])
+
+    def _vertex_array(self) -> moderngl.VertexArray:
+        key = tuple(b.generation for b in self.buffers.values())
+        if self.vao is None or key != self.vao_key:
+            if self.vao is not None:
+                self.vao.release()
+            b = self.buffers
+            self.vao = self.ctx.vertex_array(self.program, [
+                (b["position"].buffer, "3f", "in_position"),
+                (b["normal"].buffer, "3f", "in_normal"),
+                (b["radius"].buffer, "1f", "in_radius")],
+                index_buffer=b["element"].buffer, index_element_size=4)
+            self.vao_key = key
+        return self.vao
+
+    def render(self, positions, normals, radii, elements, intr: Intrinsics, near: float, far: float):
+        width, height = intr.width, intr.height
+        fb_size = (width + 2 * MARGIN_PX, height + 2 * MARGIN_PX)
+        self.buffers["position"].upload(positions)
+        self.buffers["normal"].upload(normals)
+        self.buffers["radius"].upload(radii)
+        self.buffers["element"].upload(elements)
+        if fb_size not in self.targets:
+            self.targets[fb_size] = _Targets(self.ctx, *fb_size)
+        fbo = self.targets[fb_size].fbo
+        ctx = self.ctx
+        fbo.use()
+        fbo.viewport = (0, 0, *fb_size)
+        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)   # index attachment stores index + 1
+        ctx.enable_only(moderngl.DEPTH_TEST | moderngl.PROGRAM_POINT_SIZE)
+        ctx.depth_func = "<"
+        prog = self.program
+        prog["u_K"].value = (intr.fx, intr.fy, intr.cx, intr.cy)
+        prog["u_fb_size"].value = (float(fb_size[0]), float(fb_size[1]))
+        prog["u_margin"].value = float(MARGIN_PX)
+        prog["u_near_far"].value = (near, far)
+        prog["u_max_size"].value = self.max_point_size
+        prog["u_min_cos"].value = MIN_COS
+        if len(elements):
+            self._vertex_array().render(moderngl.POINTS, vertices=len(elements))
+        origin = (MARGIN_PX, MARGIN_PX)
+        index = read_attachment(fbo, 0, 1, "i4", height, width, origin)
+        index -= 1
+        return (index,
+                read_attachment(fbo, 1, 3, "f4", height, width, origin),
+                read_attachment(fbo, 2, 3, "f4", height, width, origin))
+
+
+_renderers: dict[int, _Renderer] = {}
+
+
+def _renderer() -> _Renderer:
+    ctx = gl_context()
+    if id(ctx) not in _renderers:
+        _renderers[id(ctx)] = _Renderer(ctx)
+    return _renderers[id(ctx)]
+
+
+def render_solver_maps(positions: np.ndarray, normals: np.ndarray, radii: np.ndarray,
+                       intrinsics: Intrinsics, indices: np.ndarray | None = None,
+                       near_m: float = NEAR_M, far_m: float = FAR_M) -> SolverMaps:
+    """Render (N, 3) camera-frame surfels (normals, (N,) radii in metres) as opaque disks.
+
+    `indices` selects the surfels drawn (e.g. the stable ones); maps still hold full-array indices.
+    Disks reaching outside (near_m, far_m) in depth are dropped; a disk whose projection is wider
+    than the driver's largest point size (255 px on llvmpipe) is cut to that square.
+    """
+    if intrinsics.width <= 0 or intrinsics.height <= 0:
+        raise ValueError("intrinsics need a width and height")
+    positions = np.asarray(positions, np.float32).reshape(-1, 3)
+    normals = np.asarray(normals, np.float32).reshape(-1, 3)
+    radii = np.asarray(radii, np.float32).reshape(-1)
+    n = len(positions)
+    if len(normals) != n or len(radii) != n:
+        raise ValueError("positions, normals and radii differ in length")
+    if indices is None:
+        elements = np.arange(n, dtype=np.uint32)
+    else:
+        elements = np.asarray(indices).reshape(-1)
+        if elements.dtype == bool:
+            raise ValueError("indices must be integer indices, not a mask")
+        if len(elements) and (elements.min() < 0 or elements.max() >= n):
+            raise ValueError("indices out of range")
+        elements = elements.astype(np.uint32)
+    index, vertex, normal = _renderer().render(positions, normals, radii, elements, intrinsics,
+                                               near_m, far_m)
+    return SolverMaps(index=index, vertex=vertex, normal=normal, intrinsics=intrinsics)
