@@ -7,7 +7,7 @@ from pathlib import Path
 
 from .errors import GLUnavailableError, InputError
 
-METHODS = ("observe",)
+METHODS = ("observe", "surfelwarp")
 
 
 def _positive_int(text: str) -> int:
@@ -29,6 +29,8 @@ def _add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--clip-far", type=float, default=None, metavar="M", help="far clip, metres (default 3.0)")
     p.add_argument("--start", type=int, default=0, metavar="FRAME", help="first frame index to process")
     p.add_argument("--max-frames", type=_positive_int, default=None, metavar="N")
+    p.add_argument("--no-fusion", action="store_true",
+                   help="template tracking: the first frame's surfels are tracked, never fused or extended")
     p.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
 
 
@@ -53,7 +55,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     out = args.out
     if out.exists() and not out.is_dir():
         raise InputError(out, "output path exists and is not a folder")
-    method = ObserveMethod()
+    if args.method == "surfelwarp":
+        from .pipeline import SurfelWarpMethod
+        method = SurfelWarpMethod(seq.intrinsics, fusion=not args.no_fusion)
+    else:
+        method = ObserveMethod()
     input_config = {"layout": seq.layout, "depth_scale": seq.depth_scale, "start": args.start,
                     "max_frames": args.max_frames, "intrinsics": {
                         k: getattr(seq.intrinsics, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}}

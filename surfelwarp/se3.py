@@ -98,3 +98,17 @@ def invert(T: np.ndarray) -> np.ndarray:
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply one 4x4 transform to (N, 3) points."""
     return points @ T[:3, :3].T + T[:3, 3]
+
+
+def fit_rigid(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """The rigid T minimising sum w |T source - target|^2 over (N, 3) point pairs (Kabsch)."""
+    a, b = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    w = np.ones(len(a)) if weights is None else np.asarray(weights, np.float64)
+    w = w / w.sum()
+    ca, cb = w @ a, w @ b
+    U, _, Vt = np.linalg.svd(((a - ca) * w[:, None]).T @ (b - cb))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    T = np.eye(4)
+    T[:3, :3] = Vt.T @ D @ U.T
+    T[:3, 3] = cb - T[:3, :3] @ ca
+    return T
