@@ -1,4 +1,4 @@
-"""`surfelwarp` command line: run, synth, eval."""
+"""`surfelwarp` command line: run, synth, eval, compare."""
 from __future__ import annotations
 
 import argparse
@@ -7,7 +7,7 @@ from pathlib import Path
 
 from .errors import GLUnavailableError, InputError
 
-METHODS = ("observe", "surfelwarp")
+METHODS = ("observe", "surfelwarp", "dynamicfusion")
 
 
 def _positive_int(text: str) -> int:
@@ -58,6 +58,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.method == "surfelwarp":
         from .pipeline import SurfelWarpMethod
         method = SurfelWarpMethod(seq.intrinsics, fusion=not args.no_fusion)
+    elif args.method == "dynamicfusion":
+        from .dynamicfusion import DynamicFusionMethod
+        method = DynamicFusionMethod(seq.intrinsics)
     else:
         method = ObserveMethod()
     input_config = {"layout": seq.layout, "depth_scale": seq.depth_scale, "start": args.start,
@@ -77,6 +80,10 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="reconstruct a depth sequence")
     _add_run_arguments(run)
     run.set_defaults(func=cmd_run)
+    from . import compare
+    p = sub.add_parser("compare", help="run SurfelWarp and DynamicFusion on the same frames, write report.md")
+    compare.add_arguments(p)
+    p.set_defaults(func=compare.run)
     try:
         from .data_tools import evaluate, synth
     except ImportError:

@@ -28,7 +28,9 @@ class SurfelWarpParams:
     warp_field: WarpFieldParams = field(default_factory=WarpFieldParams)
     rigid: RigidParams = field(default_factory=RigidParams)
     nonrigid: NonRigidParams = field(default_factory=NonRigidParams)
-    predict_motion: bool = True       # start rigid ICP from a constant-velocity prediction
+    predict_motion: bool = False      # start rigid ICP from a constant-velocity prediction (off:
+                                      # on deforming scenes it extrapolates deformation mistaken
+                                      # for camera motion, and the tracker drifts along the surface)
     factor_rigid_motion: bool = True  # move the warp field's common rigid motion into the camera pose
     stable_confidence: float = 10.0   # delta_stable: surfels drawn into the solver maps (Table 1)
     recent_frames: int = 2            # delta_recent: ... or observed this recently (Table 1)
@@ -104,18 +106,29 @@ class SurfelWarpMethod:
         model_vertex, model_normal = maps_to_world(maps, self.T_camera_to_world)
         T_guess = self.T_camera_to_world @ self._camera_velocity if p.predict_motion else self.T_camera_to_world
         rigid = rigid_icp(model_vertex, model_normal, self.T_camera_to_world, obs, T_guess, p.rigid)
-        self._camera_velocity = invert(self.T_camera_to_world) @ rigid.T_camera_to_world
-        self.T_camera_to_world = rigid.T_camera_to_world
+        T_previous = self.T_camera_to_world
+        if np.isfinite(rigid.rmse_m):
+            self.T_camera_to_world = rigid.T_camera_to_world
+        else:   # too few correspondences: hold the pose rather than extrapolate blindly
+            T_guess = T_previous
         timer.lap("rigid")
 
         # Non-rigid warp field on the visible surfels.
         visible = np.unique(maps.index[maps.index >= 0])
-        self.field, nonrigid = solve_nonrigid(
-            self.field, m.ref_position[visible], m.ref_normal[visible], m.knn[visible], m.weights[visible],
-            obs.vertex_map, obs.normal_map, obs.valid, self.intrinsics, self.T_camera_to_world, p.nonrigid)
+        surfels = (m.ref_position[visible], m.ref_normal[visible], m.knn[visible], m.weights[visible])
+        depth = (obs.vertex_map, obs.normal_map, obs.valid, self.intrinsics)
+        field, nonrigid = solve_nonrigid(self.field, *surfels, *depth, self.T_camera_to_world, p.nonrigid)
+        if not nonrigid.converged and rigid.iterations:
+            # On a deforming scene rigid ICP can mistake deformation for camera motion; then
+            # the solve from the motion prediction alone is tried and the better fit is kept.
+            field2, nonrigid2 = solve_nonrigid(self.field, *surfels, *depth, T_guess, p.nonrigid)
+            if nonrigid2.energy < nonrigid.energy and nonrigid2.correspondences >= 0.9 * nonrigid.correspondences:
+                field, nonrigid, self.T_camera_to_world = field2, nonrigid2, T_guess
+        self.field = field
         if p.factor_rigid_motion:
             self.field, A = factor_rigid_motion(self.field)
             self.T_camera_to_world = invert(A) @ self.T_camera_to_world
+        self._camera_velocity = invert(T_previous) @ self.T_camera_to_world
         timer.lap("nonrigid")
 
         # Forward warp of the whole reference model.

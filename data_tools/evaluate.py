@@ -1,0 +1,305 @@
+"""`surfelwarp eval OUT SEQ`: scores a run (CONTRACT.md outputs) against ground truth.
+
+With a synthetic sequence (SEQ/groundtruth.npz, see data_tools.synth), for every saved
+OUT/live/frame-%06d.ply:
+- accuracy: median (and mean) exact point-to-triangle distance of the live points to the
+  ground-truth mesh of that frame, mm (the whole mesh: live points may show parts not visible
+  in this frame);
+- precision / completeness / F-score at 5 mm and 1 cm, %: precision = share of live points
+  within the threshold of the GT mesh; completeness = share of the GT surface visible in that
+  frame (clean GT depth rendered and back-projected, every `stride`-th pixel) with a live
+  point within the threshold; F = 2PC / (P + C);
+- normal consistency: mean |n_live . n_gt| with n_gt the interpolated GT normal at the
+  closest GT point;
+- end-point error (EPE), mm: each live point's ref_* position is snapped to the GT mesh of
+  its reference_frame (closest point: triangle + barycentric coordinates), the same
+  barycentric point on this frame's GT mesh is its true position; EPE = |live - true|
+  (mean, median, % under 1 and 2 cm; also mean and median over the points on moving parts,
+  i.e. whose snapped triangle has a vertex marked `moving`).
+Trajectory (any ground truth with poses, also 7-Scenes-style frame-%06d.pose.txt): camera
+poses of metrics.json and of the ground truth, both relative to the run's first frame; ATE =
+RMSE of the translation difference without alignment, cm (also after the best rigid
+alignment, and the mean rotation error in degrees).
+Writes OUT/eval.json: {"run", "sequence", "ground_truth", "frames": [...], "average": {...},
+"trajectory": {...}}; values that cannot be computed are null.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+from pykdtree.kdtree import KDTree
+
+from surfelwarp.errors import InputError
+from surfelwarp.ply import read_ply, write_atomic
+
+from .geometry import TriangleMesh
+from .meshes import vertex_normals
+from .synth import GroundTruth, load_groundtruth
+
+THRESHOLDS_MM = (5, 10)
+FRAME_KEYS = ("points", "accuracy_median_mm", "accuracy_mean_mm",
+              *(f"{kind}_{t}mm_pct" for t in THRESHOLDS_MM for kind in ("precision", "completeness", "fscore")),
+              "normal_consistency", "epe_mean_mm", "epe_median_mm", "epe_under_1cm_pct", "epe_under_2cm_pct",
+              "moving_points", "epe_moving_mean_mm", "epe_moving_median_mm")
+
+
+def _read_metrics(run_dir: Path) -> dict:
+    path = run_dir / "metrics.json"
+    try:
+        doc = json.loads(path.read_text())
+        frames = doc["frames"]
+        for f in frames:
+            int(f["frame"]), np.asarray(f["camera_to_world"], dtype=float).reshape(4, 4)
+    except FileNotFoundError:
+        raise InputError(path, "no metrics.json: not a run output folder") from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(path, f"metrics.json does not parse ({exc.__class__.__name__}: {exc})") from None
+    return doc
+
+
+def _live_files(run_dir: Path) -> dict[int, Path]:
+    found = {}
+    for path in (run_dir / "live").glob("frame-*.ply"):
+        m = re.fullmatch(r"frame-(\d+)\.ply", path.name)
+        if m:
+            found[int(m.group(1))] = path
+    return dict(sorted(found.items()))
+
+
+def _read_live(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    try:
+        table, _ = read_ply(path)
+        names = table.dtype.names or ()
+        missing = [n for n in ("x", "y", "z", "nx", "ny", "nz", "ref_x", "ref_y", "ref_z") if n not in names]
+        if missing:
+            raise InputError(path, f"live PLY lacks vertex properties {' '.join(missing)}")
+    except InputError:
+        raise
+    except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"cannot read live PLY ({exc.__class__.__name__}: {exc})") from None
+
+    def stack(*names):
+        return np.stack([table[n].astype(np.float64) for n in names], -1)
+
+    live, normal, ref = stack("x", "y", "z"), stack("nx", "ny", "nz"), stack("ref_x", "ref_y", "ref_z")
+    # A diverged tracker can write non-finite points: they cannot be scored, so leave them out.
+    finite = np.isfinite(live).all(1) & np.isfinite(ref).all(1) & np.isfinite(normal).all(1)
+    if not finite.any():
+        raise InputError(path, "no live point has finite coordinates (the tracker diverged)")
+    return live[finite], normal[finite], ref[finite]
+
+
+def _pct(mask: np.ndarray) -> float:
+    return float(100.0 * np.mean(mask))
+
+
+def _fscore(p: float, r: float) -> float:
+    return 0.0 if p + r == 0 else 2 * p * r / (p + r)
+
+
+class _SyntheticScorer:
+    def __init__(self, gt: GroundTruth, stride: int):
+        from .render import MeshRenderer
+
+        self.gt, self.stride = gt, stride
+        self.renderer = MeshRenderer(gt.intrinsics)
+        self._meshes: dict[int, TriangleMesh] = {}
+
+    def mesh(self, index: int) -> TriangleMesh:
+        if index not in self._meshes:
+            if len(self._meshes) > 4:
+                self._meshes.pop(next(iter(self._meshes)))
+            self._meshes[index] = TriangleMesh(self.gt.vertices[index], self.gt.faces)
+        return self._meshes[index]
+
+    def visible_samples(self, index: int) -> np.ndarray:
+        depth, _ = self.renderer.render(self.gt.vertices[index], self.gt.faces)
+        points = self.gt.intrinsics.backproject(depth)[::self.stride, ::self.stride].reshape(-1, 3)
+        return points[points[:, 2] > 0]
+
+    def score(self, frame: int, reference: int, live: np.ndarray, normals: np.ndarray, ref: np.ndarray) -> dict:
+        out = dict.fromkeys(FRAME_KEYS)
+        out["points"] = len(live)
+        if len(live) == 0:
+            return out
+        fi, ri = self.gt.index(frame), self.gt.index(reference)
+        mesh = self.mesh(fi)
+        near = mesh.query(live)
+        dist_mm = 1000 * near.distance
+        out["accuracy_median_mm"] = float(np.median(dist_mm))
+        out["accuracy_mean_mm"] = float(np.mean(dist_mm))
+        samples = self.visible_samples(fi)
+        coverage_mm = 1000 * KDTree(live).query(samples, k=1)[0] if len(samples) else np.zeros(0)
+        for t in THRESHOLDS_MM:
+            p = _pct(dist_mm < t)
+            c = _pct(coverage_mm < t) if len(samples) else None
+            out[f"precision_{t}mm_pct"], out[f"completeness_{t}mm_pct"] = p, c
+            out[f"fscore_{t}mm_pct"] = None if c is None else _fscore(p, c)
+        gt_n = mesh.interpolate(vertex_normals(mesh.vertices, mesh.faces), near.face, near.bary)
+        gt_n /= np.maximum(np.linalg.norm(gt_n, axis=1, keepdims=True), 1e-12)
+        length = np.linalg.norm(normals, axis=1)
+        ok = np.isfinite(length) & (length > 1e-6)
+        if ok.any():
+            out["normal_consistency"] = float(np.mean(np.abs(np.sum(normals[ok] * gt_n[ok], 1)) / length[ok]))
+        snapped = self.mesh(ri).query(ref)
+        truth = np.einsum("ni,nij->nj", snapped.bary, self.gt.vertices[fi].astype(np.float64)[self.gt.faces[snapped.face]])
+        epe_mm = 1000 * np.linalg.norm(live - truth, axis=1)
+        out["epe_mean_mm"], out["epe_median_mm"] = float(np.mean(epe_mm)), float(np.median(epe_mm))
+        out["epe_under_1cm_pct"], out["epe_under_2cm_pct"] = _pct(epe_mm < 10), _pct(epe_mm < 20)
+        # Points on moving parts alone: a static wall would otherwise hide the tracking error.
+        moving = self.gt.moving[self.gt.faces[snapped.face]].any(axis=1)
+        out["moving_points"] = int(moving.sum())
+        if moving.any():
+            out["epe_moving_mean_mm"] = float(np.mean(epe_mm[moving]))
+            out["epe_moving_median_mm"] = float(np.median(epe_mm[moving]))
+        return out
+
+    def release(self) -> None:
+        self.renderer.release()
+
+
+def _pose_file_poses(seq_dir: Path, frames: list[int]) -> dict[int, np.ndarray]:
+    poses = {}
+    for f in frames:
+        path = seq_dir / f"frame-{f:06d}.pose.txt"
+        if not path.exists():
+            continue
+        try:
+            pose = np.loadtxt(path, dtype=np.float64).reshape(4, 4)
+        except (OSError, ValueError):
+            raise InputError(path, "pose file does not parse: expected a 4x4 matrix") from None
+        if np.isfinite(pose).all():
+            poses[f] = pose
+    return poses
+
+
+def trajectory_errors(estimated: dict[int, np.ndarray], truth: dict[int, np.ndarray]) -> dict:
+    """ATE (cm) of camera-to-world poses; both sets are taken relative to the first common frame."""
+    frames = [f for f in estimated if f in truth]
+    if not frames:
+        return {"frames": 0, "ate_cm": None, "ate_aligned_cm": None, "rotation_error_deg": None}
+    first = frames[0]
+    # General inverse: recorded poses (7-Scenes) are not exactly orthonormal.
+    est = np.stack([np.linalg.solve(estimated[first], estimated[f]) for f in frames])
+    gt = np.stack([np.linalg.solve(truth[first], truth[f]) for f in frames])
+    diff = est[:, :3, 3] - gt[:, :3, 3]
+    ate = math.sqrt(np.mean(np.sum(diff ** 2, 1)))
+    cos = (np.einsum("nij,nij->n", est[:, :3, :3], gt[:, :3, :3]) - 1) / 2
+    rot = float(np.degrees(np.mean(np.arccos(np.clip(cos, -1, 1)))))
+    # Best rigid alignment of the estimated camera centres onto the true ones (Kabsch).
+    a, b = est[:, :3, 3], gt[:, :3, 3]
+    ca, cb = a.mean(0), b.mean(0)
+    U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    aligned = (a - ca) @ R.T + cb
+    ate_aligned = math.sqrt(np.mean(np.sum((aligned - b) ** 2, 1)))
+    return {"frames": len(frames), "ate_cm": 100 * ate, "ate_aligned_cm": 100 * ate_aligned,
+            "rotation_error_deg": rot}
+
+
+def _average(rows: list[dict]) -> dict:
+    avg = {}
+    for key in FRAME_KEYS:
+        values = [r[key] for r in rows if r.get(key) is not None]
+        avg[key] = float(np.mean(values)) if values else None
+    return avg
+
+
+def evaluate(run_dir, seq_dir, stride: int = 2) -> dict:
+    """Score the run in `run_dir` against the ground truth in `seq_dir`; writes run_dir/eval.json."""
+    run_dir, seq_dir = Path(run_dir), Path(seq_dir)
+    if not run_dir.is_dir():
+        raise InputError(run_dir, "run output folder does not exist")
+    if not seq_dir.is_dir():
+        raise InputError(seq_dir, "sequence folder does not exist")
+    metrics = _read_metrics(run_dir)
+    records = {int(f["frame"]): f for f in metrics["frames"]}
+    estimated = {f: np.asarray(r["camera_to_world"], dtype=np.float64).reshape(4, 4) for f, r in records.items()}
+    rows = []
+    if (seq_dir / "groundtruth.npz").exists():
+        gt = load_groundtruth(seq_dir)
+        kind = "synthetic"
+        truth = {int(f): gt.camera_to_world[i] for i, f in enumerate(gt.frames)}
+        live = _live_files(run_dir)
+        if not live:
+            raise InputError(run_dir / "live", "no live/frame-%06d.ply files to evaluate")
+        scorer = _SyntheticScorer(gt, stride)
+        try:
+            for frame, path in live.items():
+                if frame not in records:
+                    raise InputError(path, f"frame {frame} is not listed in metrics.json")
+                reference = int(records[frame].get("reference_frame", frame))
+                for f in (frame, reference):
+                    if f not in truth:
+                        raise InputError(seq_dir / "groundtruth.npz", f"has no frame {f} (needed by {path.name})")
+                row = {"frame": frame, "reference_frame": reference}
+                row.update(scorer.score(frame, reference, *_read_live(path)))
+                rows.append(row)
+        finally:
+            scorer.release()
+    elif list(seq_dir.glob("frame-*.pose.txt")):
+        kind = "poses"
+        truth = _pose_file_poses(seq_dir, list(records))
+    else:
+        raise InputError(seq_dir, "no ground truth: expected groundtruth.npz (from `surfelwarp synth`) "
+                                  "or frame-%06d.pose.txt camera poses")
+    result = {"run": str(run_dir), "sequence": str(seq_dir), "ground_truth": kind,
+              "method": metrics.get("method"), "frames": rows, "average": _average(rows) if rows else {},
+              "trajectory": trajectory_errors(estimated, truth)}
+    write_atomic(run_dir / "eval.json", (json.dumps(result, indent=1) + "\n").encode())
+    return result
+
+
+def _fmt(value, digits=1) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def format_table(result: dict) -> str:
+    lines = []
+    if result["frames"]:
+        header = (f"{'frame':>6} {'ref':>5} {'points':>7} {'acc mm':>7} {'F@5mm':>6} {'F@1cm':>6} {'comp@1cm':>8} "
+                  f"{'normal':>6} {'EPE mm':>7} {'med':>6} {'<1cm%':>6} {'<2cm%':>6} {'EPE mov':>7}")
+        lines.append(header)
+
+        def line(label, ref, r):
+            return (f"{label:>6} {ref:>5} {_fmt(r['points'], 0):>7} {_fmt(r['accuracy_median_mm'], 2):>7} "
+                    f"{_fmt(r['fscore_5mm_pct']):>6} {_fmt(r['fscore_10mm_pct']):>6} "
+                    f"{_fmt(r['completeness_10mm_pct']):>8} {_fmt(r['normal_consistency'], 3):>6} "
+                    f"{_fmt(r['epe_mean_mm']):>7} {_fmt(r['epe_median_mm']):>6} "
+                    f"{_fmt(r['epe_under_1cm_pct']):>6} {_fmt(r['epe_under_2cm_pct']):>6} "
+                    f"{_fmt(r['epe_moving_mean_mm']):>7}")
+
+        for r in result["frames"]:
+            lines.append(line(r["frame"], r["reference_frame"], r))
+        lines.append(line("mean", "", result["average"]))
+    t = result["trajectory"]
+    lines.append(f"trajectory over {t['frames']} frames: ATE {_fmt(t['ate_cm'], 2)} cm "
+                 f"(aligned {_fmt(t['ate_aligned_cm'], 2)} cm), rotation error {_fmt(t['rotation_error_deg'], 2)} deg")
+    return "\n".join(lines)
+
+
+def _stride(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("out", type=Path, help="run output folder (metrics.json, live/)")
+    parser.add_argument("seq", type=Path, help="sequence folder with groundtruth.npz or frame-%%06d.pose.txt")
+    parser.add_argument("--stride", type=_stride, default=2, metavar="PX",
+                        help="sample the visible GT surface every PX pixels for completeness (default 2)")
+
+
+def run(args: argparse.Namespace) -> int:
+    result = evaluate(args.out, args.seq, stride=args.stride)
+    print(format_table(result))
+    print(f"written to {Path(args.out) / 'eval.json'}")
+    return 0
