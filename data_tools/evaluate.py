@@ -16,6 +16,9 @@ OUT/live/frame-%06d.ply:
   barycentric point on this frame's GT mesh is its true position; EPE = |live - true|
   (mean, median, % under 1 and 2 cm; also mean and median over the points on moving parts,
   i.e. whose snapped triangle has a vertex marked `moving`).
+With DeepDeform-style scene flow (SEQ/scene_flow/<name>_<source>_<target>.sflow): the EPE of
+the target frame's live points whose ref_* position (source frame's camera, reference_frame =
+source) lands on an object pixel with known flow, and, for scale, the EPE of not moving at all.
 Trajectory (any ground truth with poses, also 7-Scenes-style frame-%06d.pose.txt): camera
 poses of metrics.json and of the ground truth, both relative to the run's first frame; ATE =
 RMSE of the translation difference without alignment, cm (also after the best rigid
@@ -36,7 +39,9 @@ from pykdtree.kdtree import KDTree
 
 from surfelwarp.errors import InputError
 from surfelwarp.ply import read_ply, write_atomic
+from surfelwarp.sequence import open_sequence
 
+from . import sceneflow
 from .geometry import TriangleMesh
 from .meshes import vertex_normals
 from .synth import GroundTruth, load_groundtruth
@@ -45,7 +50,9 @@ THRESHOLDS_MM = (5, 10)
 FRAME_KEYS = ("points", "accuracy_median_mm", "accuracy_mean_mm",
               *(f"{kind}_{t}mm_pct" for t in THRESHOLDS_MM for kind in ("precision", "completeness", "fscore")),
               "normal_consistency", "epe_mean_mm", "epe_median_mm", "epe_under_1cm_pct", "epe_under_2cm_pct",
-              "moving_points", "epe_moving_mean_mm", "epe_moving_median_mm")
+              "moving_points", "epe_moving_mean_mm", "epe_moving_median_mm", "zero_motion_epe_mm")
+NOT_MEANINGFUL = ("every part of the scene moves and the camera is still: the run's camera pose "
+                  "carries the scene's common motion, so ATE is not a tracking error here")
 
 
 def _read_metrics(run_dir: Path) -> dict:
@@ -243,6 +250,24 @@ def evaluate(run_dir, seq_dir, stride: int = 2) -> dict:
                 rows.append(row)
         finally:
             scorer.release()
+        if gt.moving.all() and np.allclose(gt.camera_to_world, gt.camera_to_world[:1]):
+            truth = {}
+    elif sceneflow.flow_files(seq_dir):
+        kind = "sceneflow"
+        truth = {}
+        live = _live_files(run_dir)
+        intrinsics = open_sequence(seq_dir).intrinsics
+        for path, name, source, target in sceneflow.flow_files(seq_dir):
+            if target not in live:
+                raise InputError(run_dir / "live", f"no live/frame-{target:06d}.ply for the scene flow {path.name}")
+            reference = int(records.get(target, {}).get("reference_frame", -1))
+            if reference != source:
+                raise InputError(live[target], f"reference_frame is {reference}, but the scene flow {path.name} "
+                                               f"starts at frame {source}: run from --start {source} without fusion")
+            row = {"frame": target, "reference_frame": source}
+            row.update(sceneflow.sceneflow_errors(live[target], path, sceneflow.mask_for(seq_dir, name, source),
+                                                  intrinsics))
+            rows.append(row)
     elif list(seq_dir.glob("frame-*.pose.txt")):
         kind = "poses"
         truth = _pose_file_poses(seq_dir, list(records))
@@ -252,6 +277,8 @@ def evaluate(run_dir, seq_dir, stride: int = 2) -> dict:
     result = {"run": str(run_dir), "sequence": str(seq_dir), "ground_truth": kind,
               "method": metrics.get("method"), "frames": rows, "average": _average(rows) if rows else {},
               "trajectory": trajectory_errors(estimated, truth)}
+    if kind == "synthetic" and not truth:
+        result["trajectory"]["note"] = NOT_MEANINGFUL
     write_atomic(run_dir / "eval.json", (json.dumps(result, indent=1) + "\n").encode())
     return result
 
@@ -268,6 +295,7 @@ def format_table(result: dict) -> str:
         lines.append(header)
 
         def line(label, ref, r):
+            r = {key: r.get(key) for key in FRAME_KEYS}
             return (f"{label:>6} {ref:>5} {_fmt(r['points'], 0):>7} {_fmt(r['accuracy_median_mm'], 2):>7} "
                     f"{_fmt(r['fscore_5mm_pct']):>6} {_fmt(r['fscore_10mm_pct']):>6} "
                     f"{_fmt(r['completeness_10mm_pct']):>8} {_fmt(r['normal_consistency'], 3):>6} "
@@ -279,6 +307,14 @@ def format_table(result: dict) -> str:
             lines.append(line(r["frame"], r["reference_frame"], r))
         lines.append(line("mean", "", result["average"]))
     t = result["trajectory"]
+    zero = result["average"].get("zero_motion_epe_mm")
+    if zero is not None:
+        lines.append(f"EPE of standing still (zero motion): {zero:.1f} mm")
+    if t.get("note"):
+        lines.append(f"no ATE: {t['note']}")
+        return "\n".join(lines)
+    if result["ground_truth"] == "sceneflow":
+        return "\n".join(lines)
     lines.append(f"trajectory over {t['frames']} frames: ATE {_fmt(t['ate_cm'], 2)} cm "
                  f"(aligned {_fmt(t['ate_aligned_cm'], 2)} cm), rotation error {_fmt(t['rotation_error_deg'], 2)} deg")
     return "\n".join(lines)

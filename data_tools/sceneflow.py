@@ -62,7 +62,13 @@ def sceneflow_errors(live_ply: Path, flow_path: Path, mask_path: Path | None, in
         raise InputError(live_ply, "no live point maps onto a source pixel with known scene flow")
     error = np.linalg.norm(live[keep] - (ref[keep] + motion[keep]), axis=1)
     still = np.linalg.norm(motion[keep], axis=1)
-    return {"points": int(keep.sum()), "epe_mm": 1000 * float(error.mean()),
+    return {"points": int(keep.sum()), "epe_mean_mm": 1000 * float(error.mean()),
             "epe_median_mm": 1000 * float(np.median(error)),
-            "under_1cm_pct": 100 * float(np.mean(error < 0.01)), "under_2cm_pct": 100 * float(np.mean(error < 0.02)),
+            "epe_under_1cm_pct": 100 * float(np.mean(error < 0.01)),
+            "epe_under_2cm_pct": 100 * float(np.mean(error < 0.02)),
             "zero_motion_epe_mm": 1000 * float(still.mean())}
+
+
+def mask_for(seq_dir: Path, name: str, source: int) -> Path | None:
+    path = Path(seq_dir) / "mask" / f"{source:06d}_{name}.png"
+    return path if path.exists() else None
