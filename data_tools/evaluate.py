@@ -15,7 +15,8 @@ OUT/live/frame-%06d.ply:
   its reference_frame (closest point: triangle + barycentric coordinates), the same
   barycentric point on this frame's GT mesh is its true position; EPE = |live - true|
   (mean, median, % under 1 and 2 cm; also mean and median over the points on moving parts,
-  i.e. whose snapped triangle has a vertex marked `moving`).
+  i.e. whose snapped triangle has a vertex marked `moving`). Not computed (null) where
+  reference_frame is the frame itself: such a run claims no correspondence over time.
 With DeepDeform-style scene flow (SEQ/scene_flow/<name>_<source>_<target>.sflow): the EPE of
 the target frame's live points whose ref_* position (source frame's camera, reference_frame =
 source) lands on an object pixel with known flow, and, for scale, the EPE of not moving at all.
@@ -153,6 +154,10 @@ class _SyntheticScorer:
         ok = np.isfinite(length) & (length > 1e-6)
         if ok.any():
             out["normal_consistency"] = float(np.mean(np.abs(np.sum(normals[ok] * gt_n[ok], 1)) / length[ok]))
+        if frame == reference:
+            # ref_* is the live point itself: the run claims no correspondence over time (the
+            # observe method, a tracker's first frame), so an EPE would be vacuously zero.
+            return out
         snapped = self.mesh(ri).query(ref)
         truth = np.einsum("ni,nij->nj", snapped.bary, self.gt.vertices[fi].astype(np.float64)[self.gt.faces[snapped.face]])
         epe_mm = 1000 * np.linalg.norm(live - truth, axis=1)
