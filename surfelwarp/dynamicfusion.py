@@ -24,14 +24,13 @@ from pykdtree.kdtree import KDTree
 from .camera import Intrinsics
 from .dual_quaternion import dq_to_transform
 from .gl.mesh_maps import render_mesh_maps
-from .nonrigid import NonRigidParams, solve_nonrigid
 from .observation import CameraObservation
 from .outputs import FrameRecord
-from .pipeline import factor_rigid_motion, maps_to_world, transform_surfels
+from .pipeline import maps_to_world, transform_surfels
 from .ply import vertex_table
-from .rigid_icp import RigidParams, rigid_icp
 from .se3 import invert
 from .timing import StageTimer
+from .tracking import SurfelSet, Tracker, TrackingParams
 from .tsdf import TSDFParams, TSDFVolume, extract_mesh, fuse, node_distance_weight
 from .warp_field import (WarpField, WarpFieldParams, blend, extend, sample_nodes, skin, to_local,
                          update_skinning, warp)
@@ -42,10 +41,7 @@ class DynamicFusionParams:
     tsdf: TSDFParams = field(default_factory=TSDFParams)
     # node_radius_m is DynamicFusion's decimation density epsilon (25 mm, Sec. 4).
     warp_field: WarpFieldParams = field(default_factory=WarpFieldParams)
-    rigid: RigidParams = field(default_factory=RigidParams)
-    nonrigid: NonRigidParams = field(default_factory=NonRigidParams)
-    predict_motion: bool = True       # as SurfelWarpParams
-    factor_rigid_motion: bool = True  # as SurfelWarpParams (DynamicFusion's T_lw, Sec. 3.3.3)
+    tracking: TrackingParams = field(default_factory=TrackingParams)   # the same tracker as SurfelWarp
     hierarchical_graph: bool = False  # regularise through the deformation tree (Sec. 3.3.2)
     hierarchy_levels: int = 4         # L, counting the warp nodes as level 0 (Sec. 4)
     hierarchy_beta: float = 4.0       # level l is decimated at epsilon * beta^l
@@ -146,13 +142,16 @@ class DynamicFusionMethod:
         self.mesh: CanonicalMesh | None = None
         self.tree: Hierarchy | None = None
         self.voxel_knn = self.voxel_weights = self.voxel_fusion_weight = None
-        self.T_camera_to_world = np.eye(4)
-        self._camera_velocity = np.eye(4)
+        self.tracker = Tracker(intrinsics, params.tracking)
         self.reference_frame = 0
         self.T_reference_camera_to_world = np.eye(4)
 
     def config(self) -> dict:
         return self.params.to_dict()
+
+    @property
+    def T_camera_to_world(self) -> np.ndarray:
+        return self.tracker.T_camera_to_world
 
     # ------------------------------------------------------------------ one frame
     def process(self, obs: CameraObservation) -> FrameRecord:
@@ -167,22 +166,15 @@ class DynamicFusionMethod:
                                 mesh.faces, self.intrinsics)
         timer.lap("solver_maps")
 
-        model_vertex, model_normal = maps_to_world(maps, self.T_camera_to_world)
-        T_guess = self.T_camera_to_world @ self._camera_velocity if p.predict_motion else self.T_camera_to_world
-        rigid = rigid_icp(model_vertex, model_normal, self.T_camera_to_world, obs, T_guess, p.rigid)
-        self._camera_velocity = invert(self.T_camera_to_world) @ rigid.T_camera_to_world
-        self.T_camera_to_world = rigid.T_camera_to_world
+        rigid = self.tracker.rigid(*maps_to_world(maps, self.T_camera_to_world), obs)
         timer.lap("rigid")
 
         visible = np.unique(maps.index[maps.index >= 0])
         solve_field = self.field if self.tree is None else with_hierarchy(self.field, self.tree)
-        solved, nonrigid = solve_nonrigid(
-            solve_field, mesh.vertices[visible], mesh.normals[visible], mesh.knn[visible], mesh.weights[visible],
-            obs.vertex_map, obs.normal_map, obs.valid, self.intrinsics, self.T_camera_to_world, p.nonrigid)
-        self.field = self.field.with_transforms(solved.transforms[:self.field.num_nodes])
-        if p.factor_rigid_motion:
-            self.field, A = factor_rigid_motion(self.field)
-            self.T_camera_to_world = invert(A) @ self.T_camera_to_world
+        surfels = SurfelSet(mesh.vertices[visible], mesh.normals[visible], mesh.knn[visible], mesh.weights[visible])
+        solved, nonrigid = self.tracker.nonrigid(solve_field, surfels, obs)
+        # The deformation tree's upper levels only regularise; the warp nodes are the first ones.
+        self.field = self.tracker.factor(self.field.with_transforms(solved.transforms[:self.field.num_nodes]))
         timer.lap("nonrigid")
 
         warped = self.warp_voxels()

@@ -12,26 +12,20 @@ import numpy as np
 
 from .camera import Intrinsics
 from .gl.solver_maps import SolverMaps, render_solver_maps
-from .nonrigid import NonRigidParams, solve_nonrigid
 from .observation import CameraObservation
 from .outputs import FrameRecord
 from .ply import vertex_table
-from .rigid_icp import RigidParams, rigid_icp
-from .se3 import fit_rigid, invert, transform_points
+from .se3 import invert, transform_points
 from .surfels import SurfelModel
 from .timing import StageTimer
-from .warp_field import WarpField, WarpFieldParams, skin, to_local, warp
+from .tracking import SurfelSet, Tracker, TrackingParams
+from .warp_field import WarpField, WarpFieldParams, skin, warp
 
 
 @dataclass(frozen=True)
 class SurfelWarpParams:
     warp_field: WarpFieldParams = field(default_factory=WarpFieldParams)
-    rigid: RigidParams = field(default_factory=RigidParams)
-    nonrigid: NonRigidParams = field(default_factory=NonRigidParams)
-    predict_motion: bool = False      # start rigid ICP from a constant-velocity prediction (off:
-                                      # on deforming scenes it extrapolates deformation mistaken
-                                      # for camera motion, and the tracker drifts along the surface)
-    factor_rigid_motion: bool = True  # move the warp field's common rigid motion into the camera pose
+    tracking: TrackingParams = field(default_factory=TrackingParams)
     stable_confidence: float = 10.0   # delta_stable: surfels drawn into the solver maps (Table 1)
     recent_frames: int = 2            # delta_recent: ... or observed this recently (Table 1)
 
@@ -56,18 +50,6 @@ def maps_to_world(maps: SolverMaps, T_camera_to_world: np.ndarray) -> tuple[np.n
     return vertex, normal
 
 
-def factor_rigid_motion(field: WarpField) -> tuple[WarpField, np.ndarray]:
-    """Split W = A o W' with A the rigid motion best fitting the nodes' displacements.
-
-    DQB commutes with a common left factor, so W' = A^-1 o W exactly. Without this, rigid
-    tracking error that the non-rigid solve absorbs would stay in the warp field forever and
-    the camera pose would drift from the composite motion that is actually tracked.
-    """
-    A = fit_rigid(field.nodes, field.live_nodes())
-    G = invert(A) @ field.global_transforms()
-    return field.with_transforms(to_local(G, field.nodes)), A
-
-
 class SurfelWarpMethod:
     name = "surfelwarp"
 
@@ -78,14 +60,17 @@ class SurfelWarpMethod:
         self.intrinsics, self.params, self.fusion = intrinsics, params, fusion
         self.model: SurfelModel | None = None
         self.field: WarpField | None = None
-        self.T_camera_to_world = np.eye(4)
-        self._camera_velocity = np.eye(4)      # previous frame's camera motion, T_prev^-1 T_now
+        self.tracker = Tracker(intrinsics, params.tracking)
         self.reference_frame = 0
         self.T_reference_camera_to_world = np.eye(4)
         self._next_id = 0
 
     def config(self) -> dict:
         return self.params.to_dict() | {"fusion": self.fusion}
+
+    @property
+    def T_camera_to_world(self) -> np.ndarray:
+        return self.tracker.T_camera_to_world
 
     # ------------------------------------------------------------------ one frame
     def process(self, obs: CameraObservation) -> FrameRecord:
@@ -103,32 +88,14 @@ class SurfelWarpMethod:
         timer.lap("solver_maps")
 
         # Rigid alignment of the observation to the rendered model.
-        model_vertex, model_normal = maps_to_world(maps, self.T_camera_to_world)
-        T_guess = self.T_camera_to_world @ self._camera_velocity if p.predict_motion else self.T_camera_to_world
-        rigid = rigid_icp(model_vertex, model_normal, self.T_camera_to_world, obs, T_guess, p.rigid)
-        T_previous = self.T_camera_to_world
-        if np.isfinite(rigid.rmse_m):
-            self.T_camera_to_world = rigid.T_camera_to_world
-        else:   # too few correspondences: hold the pose rather than extrapolate blindly
-            T_guess = T_previous
+        rigid = self.tracker.rigid(*maps_to_world(maps, self.T_camera_to_world), obs)
         timer.lap("rigid")
 
         # Non-rigid warp field on the visible surfels.
         visible = np.unique(maps.index[maps.index >= 0])
-        surfels = (m.ref_position[visible], m.ref_normal[visible], m.knn[visible], m.weights[visible])
-        depth = (obs.vertex_map, obs.normal_map, obs.valid, self.intrinsics)
-        field, nonrigid = solve_nonrigid(self.field, *surfels, *depth, self.T_camera_to_world, p.nonrigid)
-        if not nonrigid.converged and rigid.iterations:
-            # On a deforming scene rigid ICP can mistake deformation for camera motion; then
-            # the solve from the motion prediction alone is tried and the better fit is kept.
-            field2, nonrigid2 = solve_nonrigid(self.field, *surfels, *depth, T_guess, p.nonrigid)
-            if nonrigid2.energy < nonrigid.energy and nonrigid2.correspondences >= 0.9 * nonrigid.correspondences:
-                field, nonrigid, self.T_camera_to_world = field2, nonrigid2, T_guess
-        self.field = field
-        if p.factor_rigid_motion:
-            self.field, A = factor_rigid_motion(self.field)
-            self.T_camera_to_world = invert(A) @ self.T_camera_to_world
-        self._camera_velocity = invert(T_previous) @ self.T_camera_to_world
+        surfels = SurfelSet(m.ref_position[visible], m.ref_normal[visible], m.knn[visible], m.weights[visible])
+        field, nonrigid = self.tracker.nonrigid(self.field, surfels, obs)
+        self.field = self.tracker.factor(field)
         timer.lap("nonrigid")
 
         # Forward warp of the whole reference model.
