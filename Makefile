@@ -28,7 +28,7 @@ egl: $(STAMP)
 
 demo: setup
 	$(PY) -m surfelwarp synth sheet --out $(DEMO)/sheet --frames 40
-	$(PY) -m surfelwarp run $(DEMO)/sheet --out $(DEMO)/run
+	$(PY) -m surfelwarp run $(DEMO)/sheet --out $(DEMO)/run --method surfelwarp --no-fusion
 	$(PY) -m surfelwarp eval $(DEMO)/run $(DEMO)/sheet
 	@echo "Demo outputs: $(DEMO)/run (live/*.ply, model.ply, metrics.json, eval.json)"
 
