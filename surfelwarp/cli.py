@@ -20,7 +20,7 @@ def _positive_int(text: str) -> int:
 def _add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", type=Path, help="sequence folder (any layout of CONTRACT.md)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--method", choices=METHODS, default="observe")
+    p.add_argument("--method", choices=METHODS, default="surfelwarp")
     p.add_argument("--save-every", type=_positive_int, default=10, metavar="K",
                    help="write live/frame-%%06d.ply every K processed frames (and the last)")
     p.add_argument("--intrinsics", metavar="FX,FY,CX,CY", help="override the intrinsics file")
@@ -31,6 +31,8 @@ def _add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-frames", type=_positive_int, default=None, metavar="N")
     p.add_argument("--no-fusion", action="store_true",
                    help="template tracking: the first frame's surfels are tracked, never fused or extended")
+    p.add_argument("--config", type=Path, default=None, metavar="FILE",
+                   help="SurfelWarp parameters to override, TOML or JSON (see surfelwarp/config.py)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
 
 
@@ -42,6 +44,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .run import run_sequence
     from .sequence import open_sequence, parse_intrinsics_flag
 
+    sw_params = None
+    if args.config is not None:
+        if args.method != "surfelwarp":
+            raise InputError(args.config, "--config sets SurfelWarp parameters: use it with --method surfelwarp")
+        from .config import load_params
+        sw_params = load_params(args.config)
     intrinsics = parse_intrinsics_flag(args.intrinsics) if args.intrinsics else None
     seq = open_sequence(args.input, intrinsics=intrinsics, depth_scale=args.depth_scale,
                         start=args.start, max_frames=args.max_frames)
@@ -56,8 +64,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise InputError(out, "output path exists and is not a folder")
     if args.method == "surfelwarp":
-        from .pipeline import SurfelWarpMethod
-        method = SurfelWarpMethod(seq.intrinsics, fusion=not args.no_fusion)
+        from .pipeline import SurfelWarpMethod, SurfelWarpParams
+        method = SurfelWarpMethod(seq.intrinsics, sw_params or SurfelWarpParams(), fusion=not args.no_fusion)
     elif args.method == "dynamicfusion":
         from .dynamicfusion import DynamicFusionMethod
         method = DynamicFusionMethod(seq.intrinsics)

@@ -29,10 +29,33 @@ METHODS = ("surfelwarp", "dynamicfusion")
 NO_GROUND_TRUTH = "no ground truth"
 
 
-def make_surfelwarp(intrinsics: Intrinsics):
-    """The SurfelWarp method the comparison runs (template tracking until fusion lands)."""
-    from .pipeline import SurfelWarpMethod
-    return SurfelWarpMethod(intrinsics, fusion=False)
+# The SurfelWarp the comparison runs by default: the full pipeline (surfel fusion, Sec. VI) if
+# this is True and pipeline.py provides it, else template tracking (fusion=False). `compare
+# --no-fusion` asks for the template tracker; report.md says which one ran.
+SURFELWARP_FUSION = True
+
+
+def make_surfelwarp(intrinsics: Intrinsics, warp_field=None, fusion: bool = SURFELWARP_FUSION):
+    """warp_field: WarpFieldParams replacing SurfelWarp's default (None keeps it)."""
+    from .pipeline import SurfelWarpMethod, SurfelWarpParams
+    params = SurfelWarpParams() if warp_field is None else replace(SurfelWarpParams(), warp_field=warp_field)
+    if fusion:
+        try:
+            return SurfelWarpMethod(intrinsics, params, fusion=True)
+        except NotImplementedError:
+            pass
+    return SurfelWarpMethod(intrinsics, params, fusion=False)
+
+
+def surfelwarp_variant(metrics: dict) -> str:
+    """Which SurfelWarp ran, from its metrics.json config."""
+    fusion = metrics.get("config", {}).get("method", {}).get("fusion")
+    if fusion is False:
+        return ("template tracking (`fusion=False`: the first frame's surfels tracked, never fused, "
+                "extended or reinitialised)")
+    if fusion is True:
+        return "the full pipeline with surfel fusion (`fusion=True`)"
+    return "an unknown variant (its metrics.json has no boolean `fusion`)"
 
 
 def make_dynamicfusion(intrinsics: Intrinsics, params=None):
@@ -54,6 +77,8 @@ class CompareSpec:
     save_every: int = 10
     preprocess: PreprocessParams = PreprocessParams()
     dynamicfusion: object | None = None        # DynamicFusionParams, None = defaults
+    surfelwarp_warp_field: object | None = None  # WarpFieldParams for SurfelWarp, None = its default
+    surfelwarp_fusion: bool = SURFELWARP_FUSION  # False: SurfelWarp as template tracking
     progress: bool | None = False
 
 
@@ -99,8 +124,10 @@ def run_method(name: str, spec: CompareSpec) -> tuple[str, str] | None:
     from .run import run_sequence
     try:
         seq = open_input(spec)
-        method = make_surfelwarp(seq.intrinsics) if name == "surfelwarp" else \
-            make_dynamicfusion(seq.intrinsics, spec.dynamicfusion)
+        if name == "surfelwarp":
+            method = make_surfelwarp(seq.intrinsics, spec.surfelwarp_warp_field, spec.surfelwarp_fusion)
+        else:
+            method = make_dynamicfusion(seq.intrinsics, spec.dynamicfusion)
         input_config = {"layout": seq.layout, "depth_scale": seq.depth_scale, "start": spec.start,
                         "max_frames": spec.max_frames, "intrinsics": {
                             k: getattr(seq.intrinsics, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}}
@@ -171,6 +198,124 @@ def evaluate_runs(out: Path, seq_dir: Path) -> dict[str, dict] | None:
                 return None
             raise
     return results
+
+
+# ---------------------------------------------------------------- speed
+
+INPUT_STAGES = ("read", "preprocess")
+# Tracking: the shared rigid ICP and Gauss-Newton, and each method's model maps and data points.
+TRACKER_STAGES = ("solver_maps", "rigid", "predict", "nonrigid")
+
+
+def speed(metrics: dict[str, dict]) -> dict:
+    """Median milliseconds per frame (frames after the first, which only initialises) of each
+    method: total, input, shared tracker and model update (every other stage), and the ratio
+    DynamicFusion / SurfelWarp of the median totals."""
+    out = {}
+    for name in METHODS:
+        frames = metrics[name]["frames"][1:] or metrics[name]["frames"]
+        group = lambda f, names: sum(v for k, v in f["seconds"].items() if k in names)  # noqa: E731
+        rows = {"total": [f["seconds"]["total"] for f in frames],
+                "input": [group(f, INPUT_STAGES) for f in frames],
+                "tracker": [group(f, TRACKER_STAGES) for f in frames],
+                "model": [f["seconds"]["total"] - group(f, INPUT_STAGES + TRACKER_STAGES) for f in frames]}
+        out[name] = {k: 1000 * float(np.median(v)) for k, v in rows.items()}
+    sw, df = out["surfelwarp"], out["dynamicfusion"]
+    out["ratio"] = df["total"] / sw["total"] if sw["total"] > 0 else float("nan")
+    # SurfelWarp can be no faster than its input + tracker, whatever its model update costs.
+    out["ratio_bound"] = df["total"] / (sw["input"] + sw["tracker"]) if sw["input"] + sw["tracker"] > 0 else float("nan")
+    return out
+
+
+# ---------------------------------------------------------------- topology change
+
+CONTACT_MM = 1.0   # moving parts closer than this (ground truth) touch
+
+
+def contact_gaps(seq_dir: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(frames, gap_mm): per frame the smallest surface distance between two different moving
+    parts of a synthetic sequence's ground truth; None without ground truth or with fewer than
+    two moving parts."""
+    path = Path(seq_dir) / "groundtruth.npz"
+    if not path.exists():
+        return None
+    from .data_tools.geometry import TriangleMesh
+    from .data_tools.synth import load_groundtruth
+    gt = load_groundtruth(seq_dir)
+    parts = [p for p in np.unique(gt.part) if gt.moving[gt.part == p].all()]
+    if len(parts) < 2:
+        return None
+    from pykdtree.kdtree import KDTree
+    masks = {p: gt.part == p for p in parts}
+    faces = {}
+    for p, mask in masks.items():
+        remap = np.cumsum(mask) - 1
+        faces[p] = remap[gt.faces[mask[gt.faces].all(1)]]
+    gaps = np.full(len(gt.frames), np.inf)
+    for i in range(len(gt.frames)):
+        for a in parts:
+            va = gt.vertices[i][masks[a]]
+            # A point lies at least (distance to the nearest vertex - longest edge) from the
+            # mesh: only the points that could beat the nearest one need the exact query.
+            edge = np.linalg.norm(va[faces[a]] - va[faces[a][:, [1, 2, 0]]], axis=-1).max()
+            tree = KDTree(va)
+            for b in parts:
+                if b > a:
+                    vb = gt.vertices[i][masks[b]]
+                    d, _ = tree.query(vb, k=1)
+                    near = vb[d <= d.min() + edge]
+                    gaps[i] = min(gaps[i], float(TriangleMesh(va, faces[a]).query(near).distance.min()))
+    return np.asarray(gt.frames), 1000 * gaps
+
+
+def topology_phases(frames: np.ndarray, gap_mm: np.ndarray, contact_mm: float = CONTACT_MM) -> dict[str, list[int]] | None:
+    """Frames before the first contact, in it, and after the parts separate (until they touch
+    again); None if the parts never touch or never part."""
+    contact = gap_mm < contact_mm
+    if not contact.any() or contact.all():
+        return None
+    start = int(np.argmax(contact))
+    end = start + int(np.argmax(~contact[start:])) if (~contact[start:]).any() else len(contact)
+    if end == len(contact):
+        return None
+    again = end + int(np.argmax(contact[end:])) if contact[end:].any() else len(contact)
+    f = [int(x) for x in frames]
+    return {"before contact": f[:start], "in contact": f[start:end], "after separation": f[end:again]}
+
+
+PHASE_KEYS = (("accuracy_median_mm", "accuracy, median (mm)", 2), ("accuracy_mean_mm", "accuracy, mean (mm)", 2),
+              ("precision_5mm_pct", "precision at 5 mm (%)", 1), ("completeness_5mm_pct", "completeness at 5 mm (%)", 1),
+              ("fscore_5mm_pct", "F-score at 5 mm (%)", 1), ("epe_mean_mm", "EPE, mean (mm)", 1))
+
+
+def phase_averages(results: dict[str, dict], phases: dict[str, list[int]]) -> dict[str, dict[str, dict]]:
+    """phase -> method -> {key: mean over the evaluated frames of that phase, "frames": [...]}."""
+    out = {}
+    for phase, frames in phases.items():
+        out[phase] = {}
+        for name in METHODS:
+            rows = [r for r in results[name]["frames"] if r["frame"] in set(frames)]
+            avg = {"frames": [r["frame"] for r in rows]}
+            for key, _, _ in PHASE_KEYS:
+                values = [r[key] for r in rows if r.get(key) is not None]
+                avg[key] = float(np.mean(values)) if values else None
+            out[phase][name] = avg
+    return out
+
+
+def phase_render_frames(out: Path, phases: dict[str, list[int]]) -> list[int]:
+    """Saved frames to render: the middle of 'before contact' and 'in contact', and the middle
+    and last saved frame 'after separation'."""
+    saved = set(pick_frames(out, count=10 ** 6))
+    chosen = []
+    for phase, picks in (("before contact", (0.5,)), ("in contact", (0.5,)), ("after separation", (0.5, 1.0))):
+        frames = [f for f in phases.get(phase, []) if f in saved]
+        for q in picks:
+            if frames:
+                f = frames[min(int(q * len(frames)), len(frames) - 1)]
+                if f not in chosen:
+                    chosen.append(f)
+    return sorted(chosen)
 
 
 # ---------------------------------------------------------------- normal maps
@@ -318,6 +463,33 @@ def plot_accuracy(results: dict[str, dict], path: Path) -> None:
     plt.close(fig)
 
 
+def plot_topology(results: dict[str, dict], frames: np.ndarray, gap_mm: np.ndarray, phases: dict[str, list[int]],
+                  path: Path) -> None:
+    plt = _plt()
+    panels = (("gap", "gap between the parts, ground truth (mm)"),
+              ("accuracy_mean_mm", "accuracy, mean (mm)"),
+              ("precision_5mm_pct", "precision at 5 mm (%)"),
+              ("epe_mean_mm", "end-point error, mean (mm)"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(18, 4))
+    contact = phases["in contact"]
+    for ax, (key, label) in zip(axes, panels):
+        ax.axvspan(contact[0] - 0.5, contact[-1] + 0.5, color="0.85", label="in contact")
+        if key == "gap":
+            ax.plot(frames, gap_mm, "k-")
+        else:
+            for name, marker in zip(METHODS, ("o-", "s--")):
+                rows = results[name]["frames"]
+                ax.plot([r["frame"] for r in rows], [np.nan if r[key] is None else r[key] for r in rows],
+                        marker, label=LABELS[name])
+            ax.legend(fontsize=8)
+        ax.set_title(label)
+        ax.set_xlabel("frame")
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def crop_to_content(panels: list[tuple[str, np.ndarray]], margin_px: int = 12) -> list[tuple[str, np.ndarray]]:
     """The panels cut to the box (plus a margin) holding every panel's non-white pixels."""
     drawn = np.any([np.any(image < 1.0, axis=-1) for _, image in panels], axis=0)
@@ -389,22 +561,82 @@ def summary_rows(metrics: dict[str, dict], results: dict[str, dict] | None) -> l
     return rows
 
 
+SPEED_TARGET = 3.0   # SurfelWarp should be at least this much faster per frame
+
+
+def speed_lines(metrics: dict[str, dict]) -> list[str]:
+    sp = speed(metrics)
+    sw, df = sp["surfelwarp"], sp["dynamicfusion"]
+    lines = ["## Speed", "",
+             f"SurfelWarp ran as {surfelwarp_variant(metrics['surfelwarp'])}.", "",
+             f"**Speed ratio: SurfelWarp is {sp['ratio']:.2f}x faster per frame than DynamicFusion** "
+             f"(median time per frame after the first: SurfelWarp {sw['total']:.0f} ms, "
+             f"DynamicFusion {df['total']:.0f} ms; target at least {SPEED_TARGET:g}x).", "",
+             "| median ms per frame | SurfelWarp | DynamicFusion |", "|---|---:|---:|",
+             f"| input (read, preprocess) | {sw['input']:.0f} | {df['input']:.0f} |",
+             f"| tracking (solver maps, rigid ICP, data points, non-rigid GN) | {sw['tracker']:.0f} | {df['tracker']:.0f} |",
+             f"| model update (all other stages) | {sw['model']:.0f} | {df['model']:.0f} |",
+             f"| total | {sw['total']:.0f} | {df['total']:.0f} |", ""]
+    if sp["ratio"] < SPEED_TARGET:
+        lines += [f"Below {SPEED_TARGET:g}x: SurfelWarp's frame is mostly input and tracking, which both methods "
+                  f"share ({sw['input'] + sw['tracker']:.0f} of {sw['total']:.0f} ms), so even a free model update "
+                  f"would make it at most {sp['ratio_bound']:.2f}x faster than DynamicFusion here; DynamicFusion's "
+                  f"volumetric stages add {df['model']:.0f} ms.", ""]
+    return lines
+
+
+def topology_lines(phases: dict[str, list[int]], averages: dict[str, dict[str, dict]]) -> list[str]:
+    contact = phases["in contact"]
+    after = phases["after separation"]
+    lines = ["## Topology change", "",
+             f"In the ground truth the moving parts touch (gap under {CONTACT_MM:g} mm) in frames "
+             f"{contact[0]}-{contact[-1]} and are apart again in frames {after[0]}-{after[-1]}. "
+             "Averages over the evaluated (saved) frames of each phase:", ""]
+    names = [p for p in phases if phases[p]]
+    lines += ["| | " + " | ".join(f"{p}: {LABELS[n]}" for p in names for n in METHODS) + " |",
+              "|---|" + "---:|" * (len(names) * len(METHODS)),
+              "| evaluated frames | " + " | ".join(
+                  ",".join(str(f) for f in averages[p][n]["frames"]) or "-" for p in names for n in METHODS) + " |"]
+    for key, label, digits in PHASE_KEYS:
+        lines.append(f"| {label} | " + " | ".join(_fmt(averages[p][n][key], digits) for p in names for n in METHODS) + " |")
+    sw, df = averages["after separation"]["surfelwarp"], averages["after separation"]["dynamicfusion"]
+    if df["accuracy_mean_mm"] is not None and sw["accuracy_mean_mm"] is not None:
+        lines += ["", f"After separation: DynamicFusion's live surface lies {_fmt(df['accuracy_mean_mm'], 2)} mm from "
+                      f"the true one on average ({_fmt(df['precision_5mm_pct'])} % of it within 5 mm), SurfelWarp's "
+                      f"{_fmt(sw['accuracy_mean_mm'], 2)} mm ({_fmt(sw['precision_5mm_pct'])} %)."]
+    lines += ["", "![topology change](topology.png)", ""]
+    return lines
+
+
 def write_report(out: Path, spec: CompareSpec, seq, metrics: dict[str, dict], results: dict[str, dict] | None,
-                 normal_images: list[tuple[int, str]]) -> Path:
+                 normal_images: list[tuple[int, str]], topology: tuple[dict, dict] | None = None) -> Path:
     intr = seq.intrinsics
     lines = ["# SurfelWarp vs DynamicFusion", "",
              f"Input `{spec.input}` ({seq.layout}, {intr.width}x{intr.height}), "
              f"{metrics['surfelwarp']['summary']['frames']} frames from frame {seq.files[0].index}. "
              "Both methods share the rigid ICP and the non-rigid Gauss-Newton tracker; each ran alone in "
-             "its own process. Outputs: `surfelwarp/`, `dynamicfusion/` (as `surfelwarp run`).", "",
-             "| | SurfelWarp | DynamicFusion |", "|---|---:|---:|"]
+             "its own process, one after the other. Outputs: `surfelwarp/`, `dynamicfusion/` (as `surfelwarp run`).", ""]
+    fields_used = {n: metrics[n].get("config", {}).get("method", {}).get("warp_field") for n in METHODS}
+    if all(fields_used.values()):
+        describe = lambda w: (f"nodes {1000 * w['node_radius_m']:.0f} mm apart, {w['k_skin']} skinning and "  # noqa: E731
+                              f"{w['graph_k']} regularisation neighbours")
+        if fields_used["surfelwarp"] == fields_used["dynamicfusion"]:
+            lines += [f"Warp field of both: {describe(fields_used['surfelwarp'])}.", ""]
+        else:
+            lines += [f"Warp field: SurfelWarp {describe(fields_used['surfelwarp'])}; DynamicFusion "
+                      f"{describe(fields_used['dynamicfusion'])}.", ""]
+    lines += speed_lines(metrics)
+    lines += ["## Summary", "", "| | SurfelWarp | DynamicFusion |", "|---|---:|---:|"]
     lines += [f"| {r[0]} | {r[1]} | {r[2]} |" for r in summary_rows(metrics, results)]
     if results is None:
         lines += ["", "The sequence has no ground truth: no accuracy figures."]
     else:
         lines += ["", "Accuracy, completeness and EPE: averages over the saved live frames "
                       "(`surfelwarp eval`, written to each run's `eval.json`)."]
-    lines += ["", "## Time per frame by stage", "", "![time per frame](timing.png)", "",
+    lines.append("")
+    if topology is not None:
+        lines += topology_lines(*topology)
+    lines += ["## Time per frame by stage", "", "![time per frame](timing.png)", "",
               "## Model size", "", "![model size](model_size.png)", "",
               "## Memory", "", "![memory](memory.png)", ""]
     if results is not None:
@@ -435,8 +667,16 @@ def compare(spec: CompareSpec, render_frames: list[int] | None = None) -> Path:
     plot_timing(metrics, out / "timing.png")
     plot_model_size(metrics, out / "model_size.png")
     plot_memory(metrics, out / "memory.png")
+    topology = None
     if results is not None:
         plot_accuracy(results, out / "accuracy.png")
+        gaps = contact_gaps(spec.input)
+        phases = None if gaps is None else topology_phases(*gaps)
+        if phases is not None:
+            topology = (phases, phase_averages(results, phases))
+            plot_topology(results, *gaps, phases, out / "topology.png")
+            if render_frames is None:
+                render_frames = phase_render_frames(out, phases)
     images = []
     for frame in (pick_frames(out) if render_frames is None else render_frames):
         panels = []
@@ -451,7 +691,7 @@ def compare(spec: CompareSpec, render_frames: list[int] | None = None) -> Path:
             file = f"normals-{frame:06d}.png"
             plot_normals(panels, f"frame {frame}", out / file)
             images.append((frame, file))
-    return write_report(out, spec, seq, metrics, results, images)
+    return write_report(out, spec, seq, metrics, results, images, topology)
 
 
 # ---------------------------------------------------------------- command line
@@ -483,6 +723,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-frames", type=_positive_int, default=None, metavar="N")
     p.add_argument("--voxel-size", type=float, default=None, metavar="M",
                    help="DynamicFusion voxel size, metres (default 0.004)")
+    p.add_argument("--no-fusion", action="store_true",
+                   help="SurfelWarp as template tracking (the first frame's surfels, never fused)")
+    p.add_argument("--graph-k", type=_positive_int, default=None, metavar="K",
+                   help="both methods: regularise each node with its K nearest nodes (default 8); with "
+                        "separate parts (fingers) K nearest may link across the gap between them")
     p.add_argument("--hierarchical", action="store_true",
                    help="DynamicFusion regularises through its hierarchical deformation tree")
     p.add_argument("--render-frames", type=_frame_list, default=None, metavar="F1,F2,..",
@@ -507,10 +752,15 @@ def spec_from_args(args: argparse.Namespace) -> CompareSpec:
             raise InputError(None, f"--voxel-size must be positive, got {args.voxel_size}")
         # The truncation band keeps its width in voxels (3, as the defaults 12 mm / 4 mm).
         df = replace(df, tsdf=replace(df.tsdf, voxel_size_m=args.voxel_size, truncation_m=3 * args.voxel_size))
+    sw_field = None
+    if args.graph_k is not None:
+        df = replace(df, warp_field=replace(df.warp_field, graph_k=args.graph_k))
+        sw_field = df.warp_field
     return CompareSpec(input=args.input, out=args.out,
                        intrinsics=parse_intrinsics_flag(args.intrinsics) if args.intrinsics else None,
                        depth_scale=args.depth_scale, start=args.start, max_frames=args.max_frames,
-                       save_every=args.save_every, preprocess=params, dynamicfusion=df,
+                       save_every=args.save_every, preprocess=params, dynamicfusion=df, surfelwarp_warp_field=sw_field,
+                       surfelwarp_fusion=not args.no_fusion,
                        progress=False if args.no_progress else None)
 
 

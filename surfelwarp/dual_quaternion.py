@@ -12,6 +12,7 @@ to normalise first. All functions are batched over leading dimensions.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 
 def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -135,11 +136,85 @@ def dq_blend(dqs: np.ndarray, weights: np.ndarray, normalize: bool = True) -> np
     return dq_normalize(blended) if normalize else blended
 
 
+def dq_blend_indexed(dqs: np.ndarray, knn: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """dq_blend(dqs[knn], weights, normalize=False) without the (N, k, 8) gather.
+
+    dqs (M, 8), knn (N, k) indices into it, weights (N, k). Returns the raw blends (N, 8) and
+    the signed weights (N, k) they were summed with (the antipodal fix folded into the weight),
+    so that blend = sum_s signed[:, s] * dqs[knn[:, s]].
+    """
+    dqs = np.asarray(dqs, np.float64)
+    knn = np.asarray(knn, np.int64)
+    signed = np.array(weights, np.float64)
+    n, k = knn.shape
+    # Two rotations turning by less than 90 degrees each are less than 180 degrees apart, so
+    # their real parts have a positive dot product and no sign fix is needed: only the points
+    # that have a node turning further (margin for rounding) are checked.
+    real = dqs[:, :4]
+    calm = real[:, 0] > 0.7072 * np.sqrt(np.einsum("ij,ij->i", real, real))
+    check = np.flatnonzero(~np.all(calm[knn], axis=1)) if n else np.zeros(0, np.int64)
+    if len(check):
+        sub = knn[check]
+        ref = real[sub[np.arange(len(check)), np.argmax(signed[check], axis=1)]]
+        flip = np.einsum("csi,ci->cs", real[sub], ref) < 0
+        signed[check] = np.where(flip, -signed[check], signed[check])
+    # The blend as a sparse (N, M) times dense (M, 8) product: no per-slot gathers.
+    K = sp.csr_matrix((signed.reshape(-1), knn.reshape(-1), np.arange(n + 1) * k), shape=(n, len(dqs)))
+    return K @ dqs, signed
+
+
+def _components(a: np.ndarray) -> np.ndarray:
+    """(..., c) -> contiguous (c, ...) so that every component is one flat run in memory."""
+    return np.ascontiguousarray(np.moveaxis(np.asarray(a, np.float64), -1, 0))
+
+
+def dq_apply(dq: np.ndarray, points: np.ndarray | None = None,
+             normals: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(..., 8) dual quaternions (any non-zero real part) applied to (..., 3) points and normals.
+
+    Same values as dq_to_transform, without building 4x4 matrices. Either input may be None
+    (then so is its output).
+    """
+    p, n = apply_components(_components(dq), None if points is None else _components(points),
+                            None if normals is None else _components(normals))
+    return (None if p is None else np.stack(p, axis=-1)), (None if n is None else np.stack(n, axis=-1))
+
+
+def apply_components(dq, points=None, normals=None):
+    """dq_apply on components: dq the 8 arrays w, x, y, z, w', x', y', z' (any broadcastable
+    shapes), points/normals 3 arrays each or None; returns lists of 3 arrays (or None).
+
+    The rotation acts as (w^2 - |v|^2) x + 2 (v . x) v + 2 w v x x, over |q_r|^2, with
+    q_r = (w, v); the translation is the vector part of 2 q_d conj(q_r) / |q_r|^2.
+    """
+    w, x, y, z, we, xe, ye, ze = dq
+    inv = 1.0 / (w * w + x * x + y * y + z * z)
+    c = (w * w - x * x - y * y - z * z) * inv
+    w2, x2, y2, z2 = (2.0 * inv) * w, (2.0 * inv) * x, (2.0 * inv) * y, (2.0 * inv) * z
+
+    def rotate(v):
+        px, py, pz = v
+        d = x2 * px + y2 * py + z2 * pz
+        return [c * px + d * x + w2 * (y * pz - z * py),
+                c * py + d * y + w2 * (z * px - x * pz),
+                c * pz + d * z + w2 * (x * py - y * px)]
+
+    out_p = out_n = None
+    if points is not None:
+        out_p = rotate(points)
+        out_p[0] += w2 * xe - we * x2 + (y2 * ze - z2 * ye)
+        out_p[1] += w2 * ye - we * y2 + (z2 * xe - x2 * ze)
+        out_p[2] += w2 * ze - we * z2 + (x2 * ye - y2 * xe)
+    if normals is not None:
+        out_n = rotate(normals)
+    return out_p, out_n
+
+
 def dq_rotate(dq: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     """Rotate (..., 3) vectors (normals) by the rotation of (..., 8) dual quaternions."""
-    return (quat_to_matrix(np.asarray(dq, np.float64)[..., :4]) @ np.asarray(vectors, np.float64)[..., None])[..., 0]
+    return dq_apply(dq, None, vectors)[1]
 
 
 def dq_transform_points(dq: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply (..., 8) dual quaternions to (..., 3) points."""
-    return dq_rotate(dq, points) + dq_translation(dq)
+    return dq_apply(dq, points)[0]

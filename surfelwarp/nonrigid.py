@@ -12,9 +12,16 @@ Edges have unit weight (DynamicFusion's alpha_ij = max(sigma_i, sigma_j) is a co
 
 Each node has a twist xi_j = (omega, v) that left-composes its node-local transform,
 L_j <- exp(xi_j) L_j, i.e. x_live <- p_j + exp(xi_j) (x_live - p_j): the update turns the live
-points of node j about the world point p_j, then shifts them by v. The data Jacobian is the exact derivative of the dual quaternion blend
-(not a linear-blend approximation), so it matches finite differences of the true residual at
-any field. J^T J is a scipy sparse matrix solved by sparse LU (SuperLU).
+points of node j about the world point p_j, then shifts them by v. The data Jacobian is the
+exact derivative of the dual quaternion blend (not a linear-blend approximation), so it matches
+finite differences of the true residual at any field.
+
+J^T W J is summed directly in 6x6 node blocks into a sparsity pattern fixed for the solve
+(BlockPattern): the data Jacobian of a pair factors as (signed weight) x (node's 6x8 twist
+derivative) x (pair's 8-vector derivative by the blend), so only the 36 distinct products of
+that 8-vector are summed per node pair. The damped step is solved by conjugate gradients with a
+block-Jacobi preconditioner to a relative residual of pcg_rtol, falling back to sparse LU
+(SuperLU) when that does not converge; linear_solver='direct' always uses the LU.
 
 Each iteration re-associates, solves, and keeps the step only if it lowers the energy over the
 same pairs; the solve stops on a step that is tiny or barely lowers the energy, on a step that
@@ -29,11 +36,12 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .camera import Intrinsics
-from .dual_quaternion import dq_multiply, quat_conjugate, quat_multiply
+from .dual_quaternion import _components, apply_components, dq_blend_indexed, dq_multiply
 from .se3 import invert, se3_exp
 from .warp_field import WarpField, warp
 
 ROBUST = ("none", "huber", "tukey")
+LINEAR_SOLVERS = ("pcg", "direct")
 
 
 @dataclass(frozen=True)
@@ -51,6 +59,13 @@ class NonRigidParams:
     damping: float = 1e-6              # mu = damping * mean(diag(J^T J)) added to the diagonal:
                                        # keeps directions no term constrains solvable
     min_correspondences: int = 16
+    linear_solver: str = "pcg"         # 'pcg': block-Jacobi preconditioned conjugate gradients
+                                       # (as the GPU solver of Dou et al. that SurfelWarp follows),
+                                       # falling back to 'direct' (sparse LU) when it does not
+                                       # reach pcg_rtol in pcg_max_iterations; 'direct': LU only
+    pcg_rtol: float = 1e-4             # stop at |(H + mu I) x + g| <= pcg_rtol |g|: steps within
+                                       # ~1e-3 of the exact one, final energies within ~1e-4
+    pcg_max_iterations: int = 500
 
 
 @dataclass(frozen=True)
@@ -76,31 +91,55 @@ class Correspondences:
     normals: np.ndarray   # (C, 3) float64 depth normals, world
 
 
+class _Targets:
+    """The depth maps of one solve in world coordinates, as flat components (3, H*W), so that
+    association gathers 1-D arrays and transforms nothing per iteration."""
+
+    def __init__(self, depth_vertex_map, depth_normal_map, depth_valid, intrinsics, T_camera_to_world):
+        T_cw = np.asarray(T_camera_to_world, np.float64)
+        self.T_wc = invert(T_cw)
+        self.intrinsics = intrinsics
+        self.shape = np.shape(depth_valid)
+        self.valid = np.asarray(depth_valid, bool).reshape(-1)
+        R, t = T_cw[:3, :3], T_cw[:3, 3]
+        with np.errstate(invalid="ignore", over="ignore"):      # invalid pixels are never read
+            self.vertex = np.array(_rigid(R, t, np.asarray(depth_vertex_map, np.float64).reshape(-1, 3).T))
+            self.normal = np.array(_rigid(R, np.zeros(3), np.asarray(depth_normal_map, np.float64).reshape(-1, 3).T))
+
+
+def _rigid(R: np.ndarray, t: np.ndarray, p) -> list[np.ndarray]:
+    """R p + t on components (3 arrays), element-wise: as a matrix product BLAS would run this
+    tall, thin product multi-threaded, which is several times slower on a busy machine."""
+    return [p[0] * R[i, 0] + p[1] * R[i, 1] + p[2] * R[i, 2] + t[i] for i in range(3)]
+
+
+def _associate(live, live_n, targets: _Targets, params: NonRigidParams) -> Correspondences:
+    """associate() on world live surfels given as components (3, N)."""
+    intr = targets.intrinsics
+    qx, qy, qz = _rigid(targets.T_wc[:3, :3], targets.T_wc[:3, 3], live)
+    h, w = targets.shape
+    front = qz > 1e-6
+    z = np.where(front, qz, 1.0)
+    u = np.rint(intr.fx * qx / z + intr.cx)
+    v = np.rint(intr.fy * qy / z + intr.cy)
+    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    index = np.flatnonzero(inside)
+    pixel = v[index].astype(np.int64) * w + u[index].astype(np.int64)
+    ok = targets.valid[pixel]
+    index, pixel = index[ok], pixel[ok]
+    dv, dn = targets.vertex[:, pixel], targets.normal[:, pixel]
+    diff = live[:, index] - dv
+    keep = (np.einsum("ic,ic->c", diff, diff) < params.distance_gate_m ** 2) & \
+           (np.einsum("ic,ic->c", live_n[:, index], dn) > params.min_normal_cos)
+    return Correspondences(index[keep], dv[:, keep].T, dn[:, keep].T)    # (C, 3) views of (3, C) arrays
+
+
 def associate(live_points: np.ndarray, live_normals: np.ndarray, depth_vertex_map: np.ndarray,
               depth_normal_map: np.ndarray, depth_valid: np.ndarray, intrinsics: Intrinsics,
               T_camera_to_world: np.ndarray, params: NonRigidParams = NonRigidParams()) -> Correspondences:
     """Projective association of world-frame live surfels with the camera-frame depth maps."""
-    T_cw = np.asarray(T_camera_to_world, np.float64)
-    T_wc = invert(T_cw)
-    p = np.asarray(live_points, np.float64)
-    q = p @ T_wc[:3, :3].T + T_wc[:3, 3]
-    h, w = depth_valid.shape
-    front = q[:, 2] > 1e-6
-    z = np.where(front, q[:, 2], 1.0)
-    u = np.rint(intrinsics.fx * q[:, 0] / z + intrinsics.cx)
-    v = np.rint(intrinsics.fy * q[:, 1] / z + intrinsics.cy)
-    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    index = np.flatnonzero(inside)
-    pixel = v[index].astype(np.int64) * w + u[index].astype(np.int64)
-    ok = depth_valid.reshape(-1)[pixel]
-    index, pixel = index[ok], pixel[ok]
-    dv = depth_vertex_map.reshape(-1, 3)[pixel].astype(np.float64) @ T_cw[:3, :3].T + T_cw[:3, 3]
-    dn = depth_normal_map.reshape(-1, 3)[pixel].astype(np.float64) @ T_cw[:3, :3].T
-    diff = p[index] - dv
-    ln = np.asarray(live_normals, np.float64)[index]
-    keep = (np.einsum("ij,ij->i", diff, diff) < params.distance_gate_m ** 2) & \
-           (np.einsum("ij,ij->i", ln, dn) > params.min_normal_cos)
-    return Correspondences(index[keep], dv[keep], dn[keep])
+    targets = _Targets(depth_vertex_map, depth_normal_map, depth_valid, intrinsics, T_camera_to_world)
+    return _associate(_components(live_points), _components(live_normals), targets, params)
 
 
 def apply_update(field: WarpField, xi: np.ndarray) -> WarpField:
@@ -117,37 +156,48 @@ def data_residuals(field: WarpField, ref_points: np.ndarray, knn: np.ndarray, we
     return np.einsum("ij,ij->i", np.asarray(target_normals, np.float64), live - target_points)
 
 
-def _pure(v: np.ndarray) -> np.ndarray:
-    return np.concatenate([np.zeros(v.shape[:-1] + (1,)), v], axis=-1)
+def _residual_rows(b, x, n) -> np.ndarray:
+    """(C, 8) derivative of n . y(b) with respect to the 8 entries of the unnormalised blend b,
+    where y(b) = [vec(b0 x b0*) + 2 vec(be b0*)] / |b0|^2 is the blended transform applied to x.
+
+    With b0 = (w, v), be = (w', v'): |b0|^2 n . y = F = (w^2 - |v|^2) n.x + 2 (v.x)(v.n)
+    + 2 w n.(v x x) + 2 w n.v' - 2 w' n.v + 2 n.(v x v'), differentiated by hand (no quaternion
+    products per entry); the quotient rule adds -2 (n . y) (w, v). b (8, C), x and n (3, C)
+    are given as components.
+    """
+    w, vx, vy, vz, we, ex, ey, ez = b
+    px, py, pz = x
+    nx, ny, nz = n
+    inv = 1.0 / (w * w + vx * vx + vy * vy + vz * vz)
+    nx_dot = nx * px + ny * py + nz * pz                       # n . x
+    vx_dot = vx * px + vy * py + vz * pz                       # v . x
+    vn_dot = vx * nx + vy * ny + vz * nz                       # v . n
+    ne_dot = nx * ex + ny * ey + nz * ez                       # n . v'
+    xn = (py * nz - pz * ny, pz * nx - px * nz, px * ny - py * nx)      # x x n
+    en = (ey * nz - ez * ny, ez * nx - ex * nz, ex * ny - ey * nx)      # v' x n
+    nv = (ny * vz - nz * vy, nz * vx - nx * vz, nx * vy - ny * vx)      # n x v
+    v = (vx, vy, vz)
+    vxx_n = vx * xn[0] + vy * xn[1] + vz * xn[2]               # n . (v x x) = v . (x x n)
+    ven = vx * en[0] + vy * en[1] + vz * en[2]                 # n . (v x v') = v . (v' x n)
+    F = ((w * w - vx * vx - vy * vy - vz * vz) * nx_dot + 2 * vx_dot * vn_dot + 2 * w * vxx_n
+         + 2 * w * ne_dot - 2 * we * vn_dot + 2 * ven)
+    s = F * inv                                                # n . y
+    out = np.empty((8,) + w.shape)
+    out[0] = (2 * w * nx_dot + 2 * vxx_n + 2 * ne_dot - 2 * w * s) * inv
+    for i, (ni, pi) in enumerate(zip((nx, ny, nz), (px, py, pz))):
+        out[1 + i] = (2 * (vn_dot * pi + vx_dot * ni + w * xn[i] - we * ni + en[i] - (nx_dot + s) * v[i])) * inv
+        out[5 + i] = 2 * (w * ni + nv[i]) * inv
+    out[4] = -2 * vn_dot * inv
+    return np.ascontiguousarray(out.T)
 
 
-def _point_derivative(b: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """(C, 3, 8) derivative of y(b) = [vec(b0 x b0*) + 2 vec(be b0*)] / |b0|^2 (the blended
-    transform applied to x) with respect to the 8 entries of the unnormalised blend b."""
-    b0, be = b[:, :4], b[:, 4:]
-    X = _pure(x)
-    b0c = quat_conjugate(b0)
-    n2 = np.sum(b0 * b0, axis=1)
-    y = (quat_multiply(quat_multiply(b0, X), b0c)[:, 1:] + 2 * quat_multiply(be, b0c)[:, 1:]) / n2[:, None]
-    out = np.empty((len(b), 3, 8))
-    for i in range(4):
-        e = np.zeros(4)
-        e[i] = 1.0
-        ec = quat_conjugate(e)
-        dnum = (quat_multiply(quat_multiply(e, X), b0c) + quat_multiply(quat_multiply(b0, X), ec)
-                + 2 * quat_multiply(be, ec))[:, 1:]
-        out[:, :, i] = (dnum - y * (2 * b0[:, i:i + 1])) / n2[:, None]
-        out[:, :, 4 + i] = 2 * quat_multiply(e, b0c)[:, 1:] / n2[:, None]
-    return out
-
-
-def _twist_dual_quaternions(field: WarpField) -> np.ndarray:
+def _twist_dual_quaternions(field: WarpField, q: np.ndarray | None = None) -> np.ndarray:
     """(M, 6, 8): derivative of node j's world dual quaternion with respect to its twist.
 
     L_j <- exp(xi) L_j is the world motion G_j <- exp(xi') G_j with xi' = (omega, v + p_j x omega),
     and d(exp(xi') G_j) = (0, omega'/2) + eps (0, v'/2), times the dual quaternion of G_j.
     """
-    q = field.dual_quaternions()
+    q = field.dual_quaternions() if q is None else q
     p = field.nodes.astype(np.float64)
     m = len(q)
     delta = np.zeros((m, 6, 8))
@@ -160,20 +210,27 @@ def _twist_dual_quaternions(field: WarpField) -> np.ndarray:
     return dq_multiply(delta, q[:, None, :])
 
 
+def _jacobian_factors(field: WarpField, ref_points: np.ndarray, knn: np.ndarray, weights: np.ndarray,
+                      target_normals: np.ndarray):
+    """The data Jacobian in factored form: J[c, s] = signed[c, s] * D[knn[c, s]] @ rows[c]."""
+    q = field.dual_quaternions()
+    b, signed = dq_blend_indexed(q, knn, weights)
+    rows = _residual_rows(_components(b), _components(ref_points), _components(target_normals))
+    return signed, rows, _twist_dual_quaternions(field, q)
+
+
+def _expand_jacobian(signed: np.ndarray, rows: np.ndarray, D: np.ndarray, knn: np.ndarray) -> np.ndarray:
+    out = np.empty(knn.shape + (6,))
+    for s in range(knn.shape[1]):
+        out[:, s] = signed[:, s, None] * np.einsum("cmi,ci->cm", D[knn[:, s]], rows)
+    return out
+
+
 def data_jacobian(field: WarpField, ref_points: np.ndarray, knn: np.ndarray, weights: np.ndarray,
                   target_normals: np.ndarray) -> np.ndarray:
     """(C, k, 6): d residual_c / d xi of node knn[c, s] (zero for zero-weight padding slots)."""
     knn = np.asarray(knn)
-    w = np.asarray(weights, np.float64)
-    q = field.dual_quaternions()[knn]                                  # (C, k, 8)
-    pivot = np.argmax(w, axis=1)[:, None]
-    ref = np.take_along_axis(q[..., :4], pivot[..., None].repeat(4, -1), 1)
-    ws = w * np.where(np.sum(q[..., :4] * ref, -1) < 0, -1.0, 1.0)    # antipodal fix as in DQB
-    b = np.einsum("ck,cki->ci", ws, q)
-    row = np.einsum("cj,cji->ci", np.asarray(target_normals, np.float64),
-                    _point_derivative(b, np.asarray(ref_points, np.float64)))   # (C, 8)
-    D = _twist_dual_quaternions(field)                                  # (M, 6, 8)
-    return ws[:, :, None] * np.einsum("ckmi,ci->ckm", D[knn], row)
+    return _expand_jacobian(*_jacobian_factors(field, ref_points, knn, weights, target_normals), knn)
 
 
 # ---------------------------------------------------------------- regulariser
@@ -184,13 +241,18 @@ def _edges(field: WarpField) -> tuple[np.ndarray, np.ndarray]:
     return j, i
 
 
-def reg_residuals(field: WarpField) -> np.ndarray:
-    """(M, K, 3): T_i p_j - T_j p_j for every node j and graph neighbour i (zero for self slots)."""
+def _neighbour_motion(field: WarpField) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per edge (j, i): a = L_i (p_j - p_i) (rotation and translation of L_i), t_j and the residual."""
     j, i = _edges(field)
     p, L = field.nodes.astype(np.float64), field.transforms
-    a = (L[i, :3, :3] @ (p[j] - p[i])[..., None])[..., 0] + L[i, :3, 3]
-    r = p[i] + a - p[j] - L[j, :3, 3]
-    return r.reshape(field.num_nodes, -1, 3)
+    a = np.einsum("eab,eb->ea", L[i, :3, :3], p[j] - p[i]) + L[i, :3, 3]
+    t_j = L[j, :3, 3]
+    return a, t_j, p[i] + a - p[j] - t_j
+
+
+def reg_residuals(field: WarpField) -> np.ndarray:
+    """(M, K, 3): T_i p_j - T_j p_j for every node j and graph neighbour i (zero for self slots)."""
+    return _neighbour_motion(field)[2].reshape(field.num_nodes, -1, 3)
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -206,12 +268,10 @@ def reg_jacobian(field: WarpField) -> tuple[np.ndarray, np.ndarray]:
 
     d(exp(xi) y)/dxi at 0 is [-[y]x, I]; the neighbour moves a = L_i (p_j - p_i), the node t_j.
     """
-    j, i = _edges(field)
-    p, L = field.nodes.astype(np.float64), field.transforms
-    a = (L[i, :3, :3] @ (p[j] - p[i])[..., None])[..., 0] + L[i, :3, 3]
+    a, t_j, _ = _neighbour_motion(field)
     eye = np.broadcast_to(np.eye(3), a.shape[:-1] + (3, 3))
     Ji = np.concatenate([-_skew(a), eye], axis=-1)
-    Jj = -np.concatenate([-_skew(L[j, :3, 3]), eye], axis=-1)
+    Jj = -np.concatenate([-_skew(t_j), eye], axis=-1)
     shape = (field.num_nodes, -1, 3, 6)
     return Ji.reshape(shape), Jj.reshape(shape)
 
@@ -232,40 +292,192 @@ def _robust(r: np.ndarray, kind: str, scale: float) -> tuple[np.ndarray, np.ndar
     raise ValueError(f"robust must be one of {ROBUST}, got {kind!r}")
 
 
+class BlockPattern:
+    """The 6x6-block sparsity of J^T W J: the diagonal, graph edges, and node pairs that share a
+    skinned surfel. Symmetric; the blocks are summed for the upper triangle (lo <= hi) only and
+    mirrored. Built once per solve (the graph and the skinning are fixed within one), so the
+    data and regulariser blocks of every iteration are sums into fixed slots instead of a
+    general sparse product."""
+
+    _LUT_MAX = 1 << 23     # node pairs looked up in a dense table up to this many (32 MB)
+
+    def __init__(self, num_nodes: int, graph: np.ndarray, knn: np.ndarray):
+        m = self.num_nodes = int(num_nodes)
+        knn = np.asarray(knn, np.int64)
+        knn = knn.reshape(len(knn), -1)
+        n, k = knn.shape
+        K = sp.csr_matrix((np.ones(n * k), knn.reshape(-1), np.arange(n + 1) * k), shape=(n, m))
+        j = np.repeat(np.arange(m), np.shape(graph)[1] if m else 0)
+        i = np.asarray(graph, np.int64).reshape(-1)
+        E = sp.csr_matrix((np.ones(len(i)), (j, i)), shape=(m, m))
+        S = (K.T @ K + E + E.T + sp.identity(m)).tocsr()     # all entries > 0: no cancellation
+        S.sum_duplicates()
+        S.sort_indices()
+        rows = np.repeat(np.arange(m), np.diff(S.indptr))
+        cols = S.indices.astype(np.int64)
+        upper = rows <= cols
+        self.lo, self.hi = rows[upper], cols[upper]
+        self.n_upper = len(self.lo)
+        if m * m <= self._LUT_MAX:
+            self._lut = np.full(m * m, -1, np.int32)
+            self._lut[self.lo * m + self.hi] = np.arange(self.n_upper)
+        else:
+            self._lut = None
+            self._table = sp.csr_array((np.arange(1, self.n_upper + 1), (self.lo, self.hi)), shape=(m, m))
+        self.indptr, self.indices = S.indptr, S.indices
+        # Every surfel's unordered slot pairs s <= t: their upper block, and whether both orders
+        # (s, t), (t, s) fall in that block (s < t on one node: a diagonal block).
+        self.knn = knn
+        self.pair_s, self.pair_t = np.triu_indices(k)
+        a, b = knn[:, self.pair_s], knn[:, self.pair_t]
+        self.slots = self.keys(np.minimum(a, b), np.maximum(a, b))
+        self.double = (a == b) & (self.pair_s < self.pair_t)
+        self.up = self.keys(np.minimum(rows, cols), np.maximum(rows, cols))   # full block -> upper block
+        self.transposed = rows > cols
+        self.diag = self.keys(np.arange(m), np.arange(m))
+        # Regulariser edges (self slots of the graph are padding): blocks (i,i), (j,j), (i,j).
+        real = self.edge_real = i != j
+        self.edge_j, self.edge_i = j[real], i[real]
+        ej, ei = self.edge_j, self.edge_i
+        self.edge_flip = ei > ej
+        slots = np.concatenate([self.keys(ei, ei), self.keys(ej, ej),
+                                self.keys(np.minimum(ei, ej), np.maximum(ei, ej))])
+        sign = np.repeat([1.0, 1.0, -1.0], len(ei))
+        self._reg_scatter = sp.csc_matrix((sign, slots, np.arange(len(slots) + 1)), shape=(self.n_upper, len(slots)))
+
+    def keys(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Upper block index of node pairs lo <= hi (which must be in the pattern)."""
+        lo, hi = np.asarray(lo, np.int64), np.asarray(hi, np.int64)
+        if self._lut is not None:
+            return self._lut[lo * self.num_nodes + hi]
+        return (np.asarray(self._table[lo.reshape(-1), hi.reshape(-1)]) - 1).reshape(lo.shape)
+
+    def sum_blocks(self, slots: np.ndarray, weights: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """(n_upper, V): sum over rows c of weights[c, p] * values[c] into slot slots[c, p]
+        (one sparse-times-dense product: a scatter-add in compiled code)."""
+        c, p = slots.shape
+        P = sp.csc_matrix((weights.reshape(-1), slots.reshape(-1), np.arange(c + 1) * p), shape=(self.n_upper, c))
+        return P @ values
+
+    def reg_blocks(self, values: np.ndarray) -> np.ndarray:
+        return self._reg_scatter @ values
+
+    def matrix(self, upper: np.ndarray) -> sp.bsr_matrix:
+        """The symmetric (6M, 6M) BSR matrix of upper blocks (n_upper, 6, 6)."""
+        full = upper[self.up]
+        full[self.transposed] = full[self.transposed].transpose(0, 2, 1)
+        n = 6 * self.num_nodes
+        return sp.bsr_matrix((full, self.indices, self.indptr), shape=(n, n))
+
+
+_IU8 = np.triu_indices(8)
+_SYM8 = np.zeros((8, 8), np.int64)
+_SYM8[_IU8] = np.arange(len(_IU8[0]))
+_SYM8 = np.maximum(_SYM8, _SYM8.T).reshape(-1)        # (8, 8) entry -> index of its upper entry
+
+
+def _pair_blocks(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(E, 6, 6) [S_u, I]^T [S_v, I] with S_y = -[y]x, the form of the regulariser's Jacobians
+    (J_i = [S_a, I], J_j = -[S_t_j, I]): [[(u.v) I - v u^T, [u]x], [-[v]x, I]]."""
+    out = np.empty((len(u), 6, 6))
+    out[:, :3, :3] = -v[:, :, None] * u[:, None, :]
+    out[:, [0, 1, 2], [0, 1, 2]] += np.einsum("ei,ei->e", u, v)[:, None]
+    out[:, :3, 3:] = _skew(u)
+    out[:, 3:, :3] = -_skew(v)
+    out[:, 3:, 3:] = np.eye(3)
+    return out
+
+
+def _reg_terms(field: WarpField, pattern: BlockPattern) -> tuple[np.ndarray, np.ndarray]:
+    """Upper blocks (n_upper, 6, 6) of J_r^T J_r and J_r^T r_r (M, 6) of the regulariser."""
+    m = field.num_nodes
+    a, t, rr = (v[pattern.edge_real] for v in _neighbour_motion(field))
+    flip = pattern.edge_flip[:, None]
+    # Blocks (i, i), (j, j) and (i, j) = J_i^T J_j = -pair(a, t), stored as (j, i) = -pair(t, a)
+    # where j < i (the minus sign is in the scatter matrix).
+    u = np.concatenate([a, t, np.where(flip, t, a)])
+    v = np.concatenate([a, t, np.where(flip, a, t)])
+    blocks = pattern.reg_blocks(_pair_blocks(u, v).reshape(-1, 36)).reshape(-1, 6, 6)
+    nodes = np.concatenate([pattern.edge_i, pattern.edge_j])
+    gv = np.concatenate([np.concatenate([np.cross(a, rr), rr], 1), -np.concatenate([np.cross(t, rr), rr], 1)])
+    g = np.bincount((6 * nodes[:, None] + np.arange(6)).reshape(-1), gv.reshape(-1), minlength=6 * m)
+    return blocks, g.reshape(m, 6)
+
+
+_CHUNK = 1 << 15     # correspondences / surfels per batch: keeps the temporaries in cache
+
+
+def _data_terms_factored(pattern, sel, b, signed, points, normals, D, r, w):
+    """Data blocks and gradient of the surfels sel (into pattern.knn and the per-surfel blends b,
+    signed weights and reference points, the points as components (3, N)) with depth normals
+    (C, 3), residuals and weights per pair.
+
+    The Jacobian factors as J[c, s] = signed[c, s] D[knn[c, s]] rows[c] (_residual_rows), so
+    block (n1, n2) = D_n1 [sum w_c signed_s signed_t rows_c rows_c^T] D_n2^T: the sum over slot
+    pairs runs on the 36 distinct entries of the symmetric 8x8 rows_c rows_c^T."""
+    A = np.zeros((pattern.n_upper, 36))
+    e = np.zeros((pattern.num_nodes, 8))
+    k = pattern.knn.shape[1]
+    for start in range(0, len(sel), _CHUNK):
+        part = slice(start, start + _CHUNK)
+        idx = sel[part]
+        rows = _residual_rows(_components(b[idx]), points[:, idx], _components(normals[part]))
+        sg, wc = signed[idx], w[part]
+        pw = np.take(sg, pattern.pair_s, axis=1) * np.take(sg, pattern.pair_t, axis=1)
+        pw *= wc[:, None]
+        pw[pattern.double[idx]] *= 2.0
+        Q = np.take(rows, _IU8[0], axis=1) * np.take(rows, _IU8[1], axis=1)      # C-ordered (c, 36)
+        A += pattern.sum_blocks(pattern.slots[idx], pw, Q)
+        c = len(idx)
+        Kt = sp.csc_matrix((sg.reshape(-1), pattern.knn[idx].reshape(-1), np.arange(c + 1) * k),
+                           shape=(pattern.num_nodes, c))
+        e += Kt @ ((wc * r[part])[:, None] * rows)
+    A = A[:, _SYM8].reshape(-1, 8, 8)
+    blocks = (D[pattern.lo] @ A) @ D[pattern.hi].transpose(0, 2, 1)
+    return blocks, np.einsum("nij,nj->ni", D, e)
+
+
+def _data_terms_dense(pattern, J, r, w):
+    """Data blocks and gradient from per-slot Jacobians (C, k, 6) of all the pattern's surfels."""
+    knn, s, t = pattern.knn, pattern.pair_s, pattern.pair_t
+    a, b = knn[:, s], knn[:, t]
+    X = np.einsum("cpi,cpj->cpij", J[:, s], J[:, t])
+    upper = np.where((a < b)[..., None, None], X, X.transpose(0, 1, 3, 2))
+    upper += np.where(pattern.double[..., None, None], X, 0.0)
+    p = len(s)
+    blocks = pattern.sum_blocks(pattern.slots.reshape(-1, 1), np.repeat(w, p), upper.reshape(-1, 36))
+    m = pattern.num_nodes
+    g = np.bincount((6 * knn[:, :, None] + np.arange(6)).reshape(-1), ((w * r)[:, None, None] * J).reshape(-1),
+                    minlength=6 * m)
+    return blocks.reshape(-1, 6, 6), g.reshape(m, 6)
+
+
 def normal_equations(field: WarpField, J_data: np.ndarray, knn: np.ndarray, r_data: np.ndarray,
-                     w_data: np.ndarray, lambda_reg: float) -> tuple[sp.csr_matrix, np.ndarray]:
-    """J^T W J (sparse, 6M x 6M) and J^T W r of the data rows (C, k, 6) and the regulariser."""
-    n = 6 * field.num_nodes
-    c, k = knn.shape
-    sw = np.sqrt(w_data)
-    cols_d = (6 * np.asarray(knn, np.int64)[:, :, None] + np.arange(6)).reshape(c, 6 * k)
-    vals_d = (sw[:, None, None] * J_data).reshape(c, 6 * k)
+                     w_data: np.ndarray, lambda_reg: float) -> tuple[sp.bsr_matrix, np.ndarray]:
+    """J^T W J (sparse 6x6-block, 6M x 6M) and J^T W r of the data rows (C, k, 6) and the regulariser."""
+    pattern = BlockPattern(field.num_nodes, field.graph, knn)
+    w = np.asarray(w_data, np.float64)
+    bd, gd = _data_terms_dense(pattern, np.asarray(J_data, np.float64), np.asarray(r_data, np.float64), w)
+    br, gr = _reg_terms(field, pattern)
+    return pattern.matrix(bd + lambda_reg * br), (gd + lambda_reg * gr).reshape(-1)
 
-    Ji, Jj = reg_jacobian(field)
-    rr = reg_residuals(field).reshape(-1, 3)
-    j, i = _edges(field)
-    real = i != j
-    Ji, Jj, rr, j, i = Ji.reshape(-1, 3, 6)[real], Jj.reshape(-1, 3, 6)[real], rr[real], j[real], i[real]
-    e = len(j)
-    sl = np.sqrt(lambda_reg)
-    cols_r = np.concatenate([6 * i[:, None] + np.arange(6), 6 * j[:, None] + np.arange(6)], axis=1)
-    cols_r = np.repeat(cols_r[:, None, :], 3, axis=1).reshape(3 * e, 12)
-    vals_r = (sl * np.concatenate([Ji, Jj], axis=-1)).reshape(3 * e, 12)
 
-    indices = np.concatenate([cols_d.reshape(-1), cols_r.reshape(-1)])
-    data = np.concatenate([vals_d.reshape(-1), vals_r.reshape(-1)])
-    indptr = np.concatenate([np.arange(c + 1) * 6 * k, c * 6 * k + np.arange(1, 3 * e + 1) * 12])
-    J = sp.csr_matrix((data, indices, indptr), shape=(c + 3 * e, n))
-    res = np.concatenate([sw * r_data, sl * rr.reshape(-1)])
-    JT = J.T.tocsr()
-    return (JT @ J).tocsr(), JT @ res
+def _normal_equations_factored(field, pattern, sel, b, signed, points, normals, D, r, w, lambda_reg):
+    """normal_equations for the surfels sel, from their blends (see _data_terms_factored);
+    also returns the diagonal blocks (M, 6, 6)."""
+    bd, gd = _data_terms_factored(pattern, sel, b, signed, points, normals, D, r, w)
+    br, gr = _reg_terms(field, pattern)
+    upper = bd + lambda_reg * br
+    return pattern.matrix(upper), (gd + lambda_reg * gr).reshape(-1), upper[pattern.diag]
+
+
+def _damping(H: sp.spmatrix, damping: float) -> float:
+    return damping * max(float(np.mean(H.diagonal())), 1e-12)
 
 
 def solve_step(H: sp.spmatrix, g: np.ndarray, damping: float) -> np.ndarray:
-    """The damped Gauss-Newton step: (H + mu I) x = -g, mu = damping * mean(diag H)."""
-    diag = H.diagonal()
-    mu = damping * max(float(np.mean(diag)), 1e-12)
-    A = (H + sp.identity(H.shape[0], format="csr") * mu).tocsc()
+    """The damped Gauss-Newton step by sparse LU: (H + mu I) x = -g, mu = damping * mean(diag H)."""
+    A = (H + sp.identity(H.shape[0], format="csr") * _damping(H, damping)).tocsc()
     # The damped matrix is symmetric positive definite: symmetric mode without pivoting keeps
     # the fill-reducing ordering intact (about 10x faster than the default pivoting LU), and
     # minimum degree on A^T + A suits its symmetric pattern (2-3x faster than COLAMD at 4k nodes).
@@ -273,12 +485,77 @@ def solve_step(H: sp.spmatrix, g: np.ndarray, damping: float) -> np.ndarray:
     return lu.solve(-np.asarray(g, np.float64))
 
 
-def _energy(field, ref_points, knn, weights, corr, params):
-    r = data_residuals(field, ref_points[corr.index], knn[corr.index], weights[corr.index],
-                       corr.points, corr.normals)
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    # einsum rather than BLAS: threaded ddot on short vectors is slow on a busy machine.
+    return float(np.einsum("i,i->", a, b))
+
+
+def solve_step_pcg(H: sp.spmatrix, g: np.ndarray, damping: float, rtol: float = 1e-4, max_iterations: int = 500,
+                   diag_blocks: np.ndarray | None = None) -> tuple[np.ndarray, int, bool]:
+    """The damped Gauss-Newton step by conjugate gradients with a block-Jacobi (per-node 6x6)
+    preconditioner, from x = 0, until |residual| <= rtol |g|. Returns (x, iterations, converged);
+    diag_blocks (M, 6, 6) are H's diagonal blocks if known."""
+    g = np.asarray(g, np.float64)
+    n = len(g)
+    m = n // 6
+    mu = _damping(H, damping)
+    if diag_blocks is None:
+        Hb = H if isinstance(H, sp.bsr_matrix) and H.blocksize == (6, 6) else sp.bsr_matrix(H, blocksize=(6, 6))
+        rows = np.repeat(np.arange(m), np.diff(Hb.indptr))
+        on = Hb.indices == rows
+        diag_blocks = np.zeros((m, 6, 6))
+        diag_blocks[rows[on]] = Hb.data[on]
+    try:
+        Minv = np.linalg.inv(diag_blocks + mu * np.eye(6))
+    except np.linalg.LinAlgError:
+        return np.zeros(n), 0, False
+    x = np.zeros(n)
+    r = -g
+    target = rtol * np.sqrt(_dot(g, g))
+    z = np.einsum("nij,nj->ni", Minv, r.reshape(m, 6)).reshape(-1)
+    p = z.copy()
+    rz = _dot(r, z)
+    for it in range(max_iterations + 1):
+        if np.sqrt(_dot(r, r)) <= target:
+            return x, it, True
+        if it == max_iterations:
+            break
+        Hp = H @ p + mu * p
+        pHp = _dot(p, Hp)
+        if not pHp > 0:
+            break
+        alpha = rz / pHp
+        x += alpha * p
+        r -= alpha * Hp
+        z = np.einsum("nij,nj->ni", Minv, r.reshape(m, 6)).reshape(-1)
+        rz, rz_old = _dot(r, z), rz
+        p *= rz / rz_old
+        p += z
+    return x, it, False
+
+
+def _warp_state(field, ref_points, ref_normals, knn, weights):
+    """Everything one field gives the surfels (reference points and normals as components
+    (3, N)): node dual quaternions, blends (N, 8), signed weights (N, k), live points and
+    normals (3, N)."""
+    dq = field.dual_quaternions()
+    n = len(knn)
+    b, signed, live, live_n = np.empty((n, 8)), np.empty(knn.shape), np.empty((3, n)), np.empty((3, n))
+    for start in range(0, n, _CHUNK):
+        part = slice(start, start + _CHUNK)
+        b[part], signed[part] = dq_blend_indexed(dq, knn[part], weights[part])
+        p, pn = apply_components(_components(b[part]), ref_points[:, part], ref_normals[:, part])
+        for i in range(3):
+            live[i, part], live_n[i, part] = p[i], pn[i]
+    return dq, b, signed, live, live_n
+
+
+def _energy(field, corr, live, params):
+    """(total, data, reg, residuals, IRLS weights) at `field` over the pairs corr, given the
+    field's live points (3, N)."""
+    r = np.einsum("ci,ic->c", corr.normals, live[:, corr.index] - corr.points.T)
     cost, w = _robust(r, params.robust, params.robust_scale_m)
-    reg = float(np.sum(reg_residuals(field) ** 2))
-    data = float(np.sum(cost))
+    data, reg = float(np.sum(cost)), float(np.sum(reg_residuals(field) ** 2))
     return data + params.lambda_reg * reg, data, reg, r, w
 
 
@@ -293,27 +570,39 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
     """
     if params.robust not in ROBUST:
         raise ValueError(f"robust must be one of {ROBUST}, got {params.robust!r}")
-    ref_points = np.asarray(ref_points, np.float64).reshape(-1, 3)
-    ref_normals = np.asarray(ref_normals, np.float64).reshape(-1, 3)
-    knn = np.asarray(knn)
+    if params.linear_solver not in LINEAR_SOLVERS:
+        raise ValueError(f"linear_solver must be one of {LINEAR_SOLVERS}, got {params.linear_solver!r}")
+    ref_points = _components(np.reshape(ref_points, (-1, 3)))          # (3, N) throughout
+    ref_normals = _components(np.reshape(ref_normals, (-1, 3)))
+    knn = np.asarray(knn, np.int64)
     weights = np.asarray(weights, np.float64)
-    maps = (depth_vertex_map, depth_normal_map, np.asarray(depth_valid, bool), intrinsics, T_camera_to_world)
+    targets = _Targets(depth_vertex_map, depth_normal_map, depth_valid, intrinsics, T_camera_to_world)
+    pattern = None
 
-    def correspond(f):
-        live, live_n = warp(ref_points, ref_normals, knn, weights, f)
-        return associate(live, live_n, *maps, params)
+    def warped(f):
+        return _warp_state(f, ref_points, ref_normals, knn, weights)
 
-    current, energies, steps, converged = field, [], 0, False
+    current, state, energies, steps, converged = field, None, [], 0, False
     for _ in range(params.max_iterations):
-        corr = correspond(current)
+        state = warped(current) if state is None else state
+        dq, b, signed, live, live_n = state
+        corr = _associate(live, live_n, targets, params)
         if len(corr.index) < params.min_correspondences:
             break
-        total, _, _, r, w = _energy(current, ref_points, knn, weights, corr, params)
+        idx = corr.index
+        total, _, _, r, w = _energy(current, corr, live, params)
         energies.append(total)
-        sub_knn = knn[corr.index]
-        J = data_jacobian(current, ref_points[corr.index], sub_knn, weights[corr.index], corr.normals)
-        H, g = normal_equations(current, J, sub_knn, r, w, params.lambda_reg)
-        xi = solve_step(H, g, params.damping).reshape(-1, 6)
+        if pattern is None:
+            pattern = BlockPattern(current.num_nodes, current.graph, knn)
+        H, g, diag = _normal_equations_factored(current, pattern, idx, b, signed, ref_points, corr.normals,
+                                                _twist_dual_quaternions(current, dq), r, w,
+                                                params.lambda_reg)
+        ok = False
+        if params.linear_solver == "pcg":
+            xi, _, ok = solve_step_pcg(H, g, params.damping, params.pcg_rtol, params.pcg_max_iterations, diag)
+        if not ok:
+            xi = solve_step(H, g, params.damping)
+        xi = xi.reshape(-1, 6)
         steps += 1
         if not np.all(np.isfinite(xi)):
             break
@@ -321,17 +610,20 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
         moved = np.linalg.norm(candidate.transforms[:, :3, 3] - current.transforms[:, :3, 3], axis=1)
         turned = np.linalg.norm(xi[:, :3], axis=1)
         if np.max(moved + current.sigma_m * turned) < params.stop_motion_m:
-            current, converged = candidate, True
+            current, state, converged = candidate, None, True
             break
-        e_new = _energy(candidate, ref_points, knn, weights, corr, params)[0]
+        # The candidate's warp gives its energy and, if it is kept, the next association.
+        cand_state = warped(candidate)
+        e_new = _energy(candidate, corr, cand_state[3], params)[0]
         if not e_new < total:
             break
-        current = candidate
+        current, state = candidate, cand_state
         if total - e_new < params.stop_energy_rel * total:
             converged = True
             break
 
-    corr = correspond(current)
-    total, data, reg, _, _ = _energy(current, ref_points, knn, weights, corr, params)
+    state = warped(current) if state is None else state
+    corr = _associate(state[3], state[4], targets, params)
+    total, data, reg, _, _ = _energy(current, corr, state[3], params)
     energies.append(total)
     return current, NonRigidResult(steps, total, data, reg, len(corr.index), tuple(energies), converged)

@@ -1,36 +1,39 @@
 """SurfelWarp, one frame at a time (Gao & Tedrake 2018, Fig. 1).
 
-`SurfelWarpMethod.process` is the whole per-frame pipeline, top to bottom:
-draw solver maps -> rigid ICP -> non-rigid Gauss-Newton -> forward warp -> (fusion stages).
+`SurfelWarpMethod.process` is the whole per-frame pipeline, top to bottom: draw solver maps ->
+rigid ICP -> non-rigid Gauss-Newton -> forward warp (Sec. VII) -> index map at the new pose ->
+fuse depth into live surfels (VI-A) -> skin, reject and append unmatched depth surfels (VI-B..D)
+-> remove unstable and redundant surfels (VI-D) -> inverse warp of the fused surfels to S_ref ->
+extend the warp field over the appended ones (VI-D) -> reinitialise when tracking struggles (VI-F).
 With `fusion=False` the first frame's surfels are a fixed template tracked through the sequence.
+
+All positions are in world coordinates (the first frame's camera); ref_* are written in the
+camera of the reference frame (the first frame, or the last reinitialisation).
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+import io
+from pathlib import Path
 
 import numpy as np
 
+from .appending import append_candidates
 from .camera import Intrinsics
+from .config import SurfelWarpParams
+from .fusion import find_correspondences, fuse, removal_mask, remove, unmatched_depth_pixels
+from .gl.index_map import render_index_map
 from .gl.solver_maps import SolverMaps, render_solver_maps
 from .observation import CameraObservation
 from .outputs import FrameRecord
-from .ply import vertex_table
+from .ply import vertex_table, write_atomic
+from .reinit import ReinitTrigger, unsupported_mask
 from .se3 import invert, transform_points
 from .surfels import SurfelModel
 from .timing import StageTimer
-from .tracking import SurfelSet, Tracker, TrackingParams
-from .warp_field import WarpField, WarpFieldParams, skin, warp
+from .tracking import SurfelSet, Tracker
+from .warp_field import WarpField, extend, inverse_warp, skin, update_skinning, warp
 
-
-@dataclass(frozen=True)
-class SurfelWarpParams:
-    warp_field: WarpFieldParams = field(default_factory=WarpFieldParams)
-    tracking: TrackingParams = field(default_factory=TrackingParams)
-    stable_confidence: float = 10.0   # delta_stable: surfels drawn into the solver maps (Table 1)
-    recent_frames: int = 2            # delta_recent: ... or observed this recently (Table 1)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
+__all__ = ["SurfelWarpMethod", "SurfelWarpParams", "transform_surfels", "maps_to_world", "plot_counts"]
 
 
 def transform_surfels(T: np.ndarray, points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -55,12 +58,11 @@ class SurfelWarpMethod:
 
     def __init__(self, intrinsics: Intrinsics, params: SurfelWarpParams = SurfelWarpParams(),
                  fusion: bool = True):
-        if fusion:
-            raise NotImplementedError("surfel fusion (SurfelWarp Sec. VI) is not implemented yet")
         self.intrinsics, self.params, self.fusion = intrinsics, params, fusion
         self.model: SurfelModel | None = None
         self.field: WarpField | None = None
         self.tracker = Tracker(intrinsics, params.tracking)
+        self.trigger = ReinitTrigger(params.reinit)
         self.reference_frame = 0
         self.T_reference_camera_to_world = np.eye(4)
         self._next_id = 0
@@ -76,14 +78,13 @@ class SurfelWarpMethod:
     def process(self, obs: CameraObservation) -> FrameRecord:
         if self.model is None:
             return self.initialise(obs)
-        p, timer = self.params, StageTimer()
+        p, timer, now = self.params, StageTimer(), obs.time
         m = self.model
 
-        # Solver maps: the drawn surfels at the previous camera pose.
-        T_world_to_camera = invert(self.T_camera_to_world)
+        # Solver maps: the drawn surfels (all of a template; else stable or recent) at the previous pose.
         drawn = None if not self.fusion else np.flatnonzero(
-            (m.confidence >= p.stable_confidence) | (obs.time - m.t_observed <= p.recent_frames))
-        maps = render_solver_maps(*transform_surfels(T_world_to_camera, m.live_position, m.live_normal),
+            (m.confidence >= p.fusion.stable_confidence) | (now - m.t_observed <= p.recent_frames))
+        maps = render_solver_maps(*transform_surfels(invert(self.T_camera_to_world), m.live_position, m.live_normal),
                                   m.radius, self.intrinsics, indices=drawn)
         timer.lap("solver_maps")
 
@@ -91,23 +92,78 @@ class SurfelWarpMethod:
         rigid = self.tracker.rigid(*maps_to_world(maps, self.T_camera_to_world), obs)
         timer.lap("rigid")
 
-        # Non-rigid warp field on the visible surfels.
+        # Non-rigid warp field on the visible surfels; its common rigid motion goes into the pose.
         visible = np.unique(maps.index[maps.index >= 0])
         surfels = SurfelSet(m.ref_position[visible], m.ref_normal[visible], m.knn[visible], m.weights[visible])
         field, nonrigid = self.tracker.nonrigid(self.field, surfels, obs)
         self.field = self.tracker.factor(field)
         timer.lap("nonrigid")
 
-        # Forward warp of the whole reference model.
+        # Forward warp of the whole reference model: S_live = W(S_ref) (Eq. 2).
         m.live_position, m.live_normal = warp(m.ref_position, m.ref_normal, m.knn, m.weights, self.field)
         timer.lap("warp")
 
+        extra = {"correspondences": nonrigid.correspondences, "data_rmse_mm": 1000 * nonrigid.data_rmse_m,
+                 "rigid_rmse_m": float(rigid.rmse_m), "rigid_iterations": rigid.iterations}
+        reinitialized = False
+        if self.fusion:
+            extra |= self._fuse_and_update(obs, timer)
+            if self.trigger.update(nonrigid.data_rmse_m, extra["appended"], obs.num_valid):
+                extra["reinit_dropped"] = self.reinitialise(obs)
+                reinitialized = True
+                timer.lap("reinit")
         return FrameRecord(frame=obs.frame_index, reference_frame=self.reference_frame,
                            camera_to_world=self.T_camera_to_world.copy(), seconds=timer.seconds,
-                           surfels=len(m), nodes=self.field.num_nodes,
+                           surfels=len(self.model), nodes=self.field.num_nodes,
                            gauss_newton_iterations=nonrigid.iterations, energy=nonrigid.energy,
-                           extra={"correspondences": nonrigid.correspondences,
-                                  "rigid_rmse_m": float(rigid.rmse_m), "rigid_iterations": rigid.iterations})
+                           reinitialized=reinitialized, extra=extra)
+
+    def _fuse_and_update(self, obs: CameraObservation, timer: StageTimer) -> dict:
+        """Sec. VI-A..D on the freshly warped model; returns the frame's counts."""
+        p, now, T = self.params, obs.time, self.T_camera_to_world
+        m = self.model
+
+        # VI-A: live surfels as points on a 4x4 supersampled index map at the new pose.
+        maps = render_index_map(*transform_surfels(invert(T), m.live_position, m.live_normal),
+                                self.intrinsics, supersample=p.index_map_supersample)
+        timer.lap("fusion_maps")
+
+        # VI-A: each depth pixel fuses into at most one live surfel (Eq. 5).
+        corr = find_correspondences(maps, obs, m.confidence, p.fusion)
+        m, fused_pixels = fuse(m, T, obs, corr, now, p.fusion)
+        fused = np.zeros(len(m), bool)
+        fused[corr.surfel_index] = True
+        timer.lap("fuse")
+
+        # VI-B..D: unmatched depth surfels, skinned at the live frame, minus far-from-node and
+        # compressive ones, inverse-warped with that skinning.
+        added = append_candidates(obs, unmatched_depth_pixels(obs, fused_pixels), T, self.field,
+                                  p.warp_field.k_skin, p.append)
+        timer.lap("append")
+
+        # VI-D: drop long-unstable surfels and near duplicates on the index map, then append.
+        unstable_or_redundant = removal_mask(m, maps, now, p.fusion, T)
+        m = remove(m, unstable_or_redundant).concatenate(added.surfels(now, self._next_id))
+        self._next_id += len(added)
+        fused = np.concatenate([fused[~unstable_or_redundant], np.zeros(len(added), bool)])
+        timer.lap("remove")
+
+        # Sec. IV: the fused live surfels back to the reference frame (Eq. 3).
+        m.ref_position[fused], m.ref_normal[fused] = inverse_warp(
+            m.live_position[fused], m.live_normal[fused], m.knn[fused], m.weights[fused], self.field)
+        timer.lap("inverse_warp")
+
+        # VI-D: nodes for the appended surfels no node covers; the graph is rebuilt, and every
+        # surfel's k-NN compared with the new nodes.
+        self.field, first_new = extend(self.field, added.ref_position)
+        if self.field.num_nodes > first_new:
+            m.knn, m.weights = update_skinning(m.knn, m.weights, m.ref_position, self.field, first_new)
+        self.model = m
+        timer.lap("extend")
+        return {"fused": len(corr.surfel_index), "appended": len(added),
+                "removed": int(unstable_or_redundant.sum()), "append_candidates": added.candidates,
+                "rejected_weight": added.rejected_weight, "rejected_compressive": added.rejected_compressive,
+                "new_nodes": self.field.num_nodes - first_new}
 
     def initialise(self, obs: CameraObservation) -> FrameRecord:
         """Sec. VI-E: the first frame's depth surfels become S_ref = S_live; nodes sub-sampled from them."""
@@ -117,15 +173,33 @@ class SurfelWarpMethod:
         self.model = SurfelModel.from_points(position, normal, s["radius"], s["confidence"], obs.time,
                                              self._next_id, self.params.warp_field.k_skin)
         self._next_id += len(self.model)
-        self.field = WarpField.from_points(self.model.ref_position, self.params.warp_field)
-        self.model.knn, self.model.weights = skin(self.model.ref_position, self.field.nodes,
-                                                  self.params.warp_field.k_skin, self.field.sigma_m)
-        self.reference_frame = obs.frame_index
-        self.T_reference_camera_to_world = self.T_camera_to_world.copy()
+        self._new_reference(obs)
         timer.lap("initialise")
         return FrameRecord(frame=obs.frame_index, reference_frame=self.reference_frame,
                            camera_to_world=self.T_camera_to_world.copy(), seconds=timer.seconds,
                            surfels=len(self.model), nodes=self.field.num_nodes)
+
+    def reinitialise(self, obs: CameraObservation) -> int:
+        """Sec. VI-F: drop live surfels the depth contradicts, S_ref := S_live, a new warp field.
+        Surfels keep their ids, confidences and time stamps. Returns the number dropped."""
+        m = self.model
+        drop = unsupported_mask(m.live_position, m.live_normal, self.T_camera_to_world, obs, self.params.reinit)
+        if len(m) - drop.sum() < self.params.warp_field.k_skin:
+            return 0    # nothing left to build a reference on: keep tracking what there is
+        m = m.select(~drop)
+        m.ref_position, m.ref_normal = m.live_position.copy(), m.live_normal.copy()
+        self.model = m
+        self._new_reference(obs)
+        return int(drop.sum())
+
+    def _new_reference(self, obs: CameraObservation) -> None:
+        """Nodes sampled from S_ref with identity transforms, every surfel skinned to them."""
+        wp, m = self.params.warp_field, self.model
+        self.field = WarpField.from_points(m.ref_position, wp)
+        m.knn, m.weights = skin(m.ref_position, self.field.nodes, wp.k_skin, self.field.sigma_m)
+        self.reference_frame = obs.frame_index
+        self.T_reference_camera_to_world = self.T_camera_to_world.copy()
+        self.trigger.reset()
 
     # ------------------------------------------------------------------ outputs
     def live_vertices(self) -> tuple[np.ndarray, None]:
@@ -140,3 +214,34 @@ class SurfelWarpMethod:
         m = self.model
         ref, ref_normal = transform_surfels(invert(self.T_reference_camera_to_world), m.ref_position, m.ref_normal)
         return vertex_table(ref, ref_normal, ref, m.radius, m.confidence, m.ids), None
+
+    def finish(self, out_dir: Path, frames: list[FrameRecord]) -> None:
+        """End of a run: OUT/surfels.png (SurfelWarp Fig. 4)."""
+        plot_counts(Path(out_dir) / "surfels.png", frames)
+
+
+def plot_counts(path: Path, frames: list[FrameRecord]) -> None:
+    """Surfel and node count per frame, reinitialisations marked; written atomically."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [r.frame for r in frames]
+    fig, ax = plt.subplots(figsize=(8, 4))
+    ax.plot(x, [r.surfels for r in frames], color="tab:blue", label="surfels")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("surfels", color="tab:blue")
+    ax.set_ylim(bottom=0)
+    nodes = ax.twinx()
+    nodes.plot(x, [r.nodes for r in frames], color="tab:orange", label="nodes")
+    nodes.set_ylabel("nodes", color="tab:orange")
+    nodes.set_ylim(bottom=0)
+    for r in frames:
+        if r.reinitialized:
+            ax.axvline(r.frame, color="tab:red", linestyle=":", linewidth=1)
+    ax.set_title("model size per frame" + (" (dotted: reinitialisation)" if any(r.reinitialized for r in frames) else ""))
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    write_atomic(path, buf.getvalue())

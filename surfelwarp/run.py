@@ -44,6 +44,9 @@ def run_sequence(seq: Sequence, out_dir: Path, method, *, save_every: int = 10,
             bar.update(1)
             bar.set_postfix_str(f"surfels={record.surfels}", refresh=False)
         outputs.save_model(*method.model_vertices())
+        finish = getattr(method, "finish", None)   # method-specific end-of-run outputs (plots)
+        if finish is not None:
+            finish(out_dir, outputs.frames)
     except InputError as exc:
         outputs.error = str(exc)
         raise

@@ -105,7 +105,8 @@ class FuseResult:
 
 def fuse(volume: TSDFVolume, warped_centres_world: np.ndarray | None, voxel_weight,
          T_world_to_camera: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics,
-         params: TSDFParams = TSDFParams(), chunk: int = CHUNK_VOXELS) -> FuseResult:
+         params: TSDFParams = TSDFParams(), chunk: int = CHUNK_VOXELS,
+         voxels: np.ndarray | None = None) -> FuseResult:
     """Fuse one depth map into `volume` in place (DynamicFusion Eq. 3-5).
 
     warped_centres_world: (V, 3) voxel centres moved by the warp, in world coordinates, flat
@@ -114,8 +115,14 @@ def fuse(volume: TSDFVolume, warped_centres_world: np.ndarray | None, voxel_weig
     goes into the camera, is projected to the nearest pixel u, and psdf = D(u) - z (the depth of
     the back-projected pixel minus the voxel's depth, along the optical axis). Voxels with
     psdf > -tau take v' = (v w + min(1, psdf/tau) w_new) / (w + w_new), w' = min(w + w_new, w_max).
+    voxels: optional flat indices of the only voxels to consider (the caller knows the others
+    cannot be fused); warped centres and weights are then given for those voxels, in that order.
     """
-    n = volume.num_voxels
+    if voxels is not None:
+        if warped_centres_world is None:
+            raise ValueError("a voxel subset needs its warped centres")
+        voxels = np.asarray(voxels, np.int64).reshape(-1)
+    n = volume.num_voxels if voxels is None else len(voxels)
     if warped_centres_world is not None:
         warped_centres_world = np.asarray(warped_centres_world).reshape(-1, 3)
         if len(warped_centres_world) != n:
@@ -151,7 +158,7 @@ def fuse(volume: TSDFVolume, warped_centres_world: np.ndarray | None, voxel_weig
         keep = (psdf > -tau) & (w_new > 0)
         idx, psdf, w_new = idx[keep], psdf[keep], w_new[keep]
         updated += len(idx)
-        g = idx + start
+        g = idx + start if voxels is None else voxels[idx + start]
         w_old = weight[g]
         w_sum = w_old + w_new
         tsdf[g] = (tsdf[g] * w_old + np.minimum(np.float32(1), psdf / tau) * w_new) / w_sum
@@ -168,8 +175,8 @@ def _camera_coords(volume: TSDFVolume, warped: np.ndarray | None, T: np.ndarray,
     """
     R = T[:3, :3]
     t = T[:3, 3]
-    n = volume.num_voxels
     if warped is not None:
+        n = len(warped)
         Rf, tf = R.astype(np.float32), t.astype(np.float32)
         for start in range(0, n, chunk):
             stop = min(start + chunk, n)

@@ -23,9 +23,9 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
-from .dual_quaternion import dq_blend, dq_from_transform, dq_to_transform
+from .dual_quaternion import dq_apply, dq_blend_indexed, dq_from_transform, dq_to_transform
 
-_CHUNK = 1 << 16   # points per DQB batch: bounds the (chunk, k, 8) float64 temporaries
+_CHUNK = 1 << 16   # points per warp batch: bounds the float64 temporaries
 
 
 @dataclass(frozen=True)
@@ -227,12 +227,7 @@ def update_skinning(knn: np.ndarray, weights: np.ndarray, points: np.ndarray, fi
 
 def blend(knn: np.ndarray, weights: np.ndarray, field: WarpField) -> np.ndarray:
     """(N, 8) blended, unnormalised dual quaternions W(x) of skinned points."""
-    dqs = field.dual_quaternions()
-    knn = np.asarray(knn)
-    out = np.empty((len(knn), 8))
-    for s in range(0, len(knn), _CHUNK):
-        out[s:s + _CHUNK] = dq_blend(dqs[knn[s:s + _CHUNK]], weights[s:s + _CHUNK], normalize=False)
-    return out
+    return dq_blend_indexed(field.dual_quaternions(), knn, weights)[0]
 
 
 def _out_dtype(a: np.ndarray):
@@ -243,12 +238,21 @@ def warp(points: np.ndarray, normals: np.ndarray | None, knn: np.ndarray, weight
          field: WarpField) -> tuple[np.ndarray, np.ndarray | None]:
     """Reference points/normals -> live points/normals (SurfelWarp Eq. 2), in the points' dtype."""
     points = np.asarray(points)
-    T = dq_to_transform(blend(knn, weights, field))
-    live = (np.einsum("nij,nj->ni", T[:, :3, :3], points) + T[:, :3, 3]).astype(_out_dtype(points))
-    if normals is None:
-        return live, None
-    normals = np.asarray(normals)
-    return live, np.einsum("nij,nj->ni", T[:, :3, :3], normals).astype(_out_dtype(normals))
+    out_p, out_n = np.empty(points.shape, _out_dtype(points)), None
+    if normals is not None:
+        normals = np.asarray(normals)
+        out_n = np.empty(normals.shape, _out_dtype(normals))
+    dqs = field.dual_quaternions()
+    knn = np.asarray(knn)
+    # Chunks bound the float64 temporaries (a few dozen per point).
+    for s in range(0, len(points), _CHUNK):
+        part = slice(s, s + _CHUNK)
+        b, _ = dq_blend_indexed(dqs, knn[part], weights[part])
+        p, n = dq_apply(b, points[part], None if normals is None else normals[part])
+        out_p[part] = p
+        if normals is not None:
+            out_n[part] = n
+    return out_p, out_n
 
 
 def inverse_warp(live_points: np.ndarray, live_normals: np.ndarray | None, knn: np.ndarray,

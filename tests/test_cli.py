@@ -20,7 +20,7 @@ def run_cli(*args):
 def test_observe_run_writes_the_contract(tmp_path):
     seq = write_sequence(tmp_path / "seq", frames=range(5))
     out = tmp_path / "out"
-    code, stdout, stderr = run_cli("run", seq, "--out", out, "--save-every", 2)
+    code, stdout, stderr = run_cli("run", seq, "--out", out, "--method", "observe", "--save-every", 2)
     assert code == 0, stderr
     assert str(out) in stdout
     assert sorted(p.name for p in (out / "live").iterdir()) == [f"frame-{i:06d}.ply" for i in (0, 2, 4)]

@@ -1,12 +1,15 @@
 import argparse
 import json
+import subprocess
+import sys
 
 import cv2
 import numpy as np
 import pytest
 
-from surfelwarp.compare import (METHODS, CompareSpec, add_arguments, compare, input_normals, normal_colours,
-                                render_live_normals, spec_from_args)
+from surfelwarp.compare import (METHODS, CompareSpec, add_arguments, compare, contact_gaps, input_normals,
+                                normal_colours, phase_averages, render_live_normals, spec_from_args, speed,
+                                speed_lines, surfelwarp_variant, topology_phases)
 from surfelwarp.data_tools import synth
 from surfelwarp.dynamicfusion import DynamicFusionParams
 from surfelwarp.errors import InputError
@@ -20,7 +23,8 @@ FAST_DF = DynamicFusionParams(tsdf=TSDFParams(voxel_size_m=0.008, truncation_m=0
 def compared(tmp_path_factory):
     root = tmp_path_factory.mktemp("cmp")
     seq = synth.generate("sheet", root / "sheet", frames=6, size=(320, 240))
-    spec = CompareSpec(input=seq, out=root / "out", save_every=2, dynamicfusion=FAST_DF)
+    # SurfelWarp as template tracking: fast, and the comparison machinery is what is tested here.
+    spec = CompareSpec(input=seq, out=root / "out", save_every=2, dynamicfusion=FAST_DF, surfelwarp_fusion=False)
     return seq, spec, compare(spec)
 
 
@@ -50,6 +54,16 @@ def test_compare_runs_both_methods_and_writes_the_report(compared):
         assert f"{ev['average']['accuracy_median_mm']:.2f}" in text.split("accuracy, median (mm)")[1].split("\n")[0]
     rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ")}
     assert "voxels (last frame)" in rows and f"| {df['voxels']} |" in rows["voxels (last frame)"]
+    # The speed ratio is stated, from the medians of the frames after the first, with the variant.
+    totals = {n: np.median([f["seconds"]["total"] for f in metrics[n]["frames"][1:]]) for n in METHODS}
+    ratio = totals["dynamicfusion"] / totals["surfelwarp"]
+    assert f"**Speed ratio: SurfelWarp is {ratio:.2f}x faster per frame than DynamicFusion**" in text
+    assert metrics["surfelwarp"]["config"]["method"]["fusion"] is False
+    assert "SurfelWarp ran as template tracking (`fusion=False`" in text
+    assert "Warp field of both: nodes 25 mm apart, 4 skinning and 8 regularisation neighbours." in text
+    # DynamicFusion warped only the voxels that could be fused, and fused some of each.
+    for f in metrics["dynamicfusion"]["frames"][1:]:
+        assert 0 < f["fused_voxels"] <= f["warped_voxels"] < f["voxels"]
 
 
 def test_normal_renders_match_the_observed_normals(compared):
@@ -76,12 +90,80 @@ def test_normal_colours():
 def test_arguments_and_bad_input(tmp_path):
     parser = argparse.ArgumentParser()
     add_arguments(parser)
+    spec = spec_from_args(parser.parse_args([str(tmp_path / "missing"), "--out", str(tmp_path / "o")]))
+    assert spec.surfelwarp_fusion and spec.surfelwarp_warp_field is None
     args = parser.parse_args([str(tmp_path / "missing"), "--out", str(tmp_path / "o"), "--max-frames", "3",
-                              "--voxel-size", "0.01", "--hierarchical", "--clip-far", "2", "--render-frames", "1,2"])
+                              "--voxel-size", "0.01", "--hierarchical", "--clip-far", "2", "--render-frames", "1,2",
+                              "--no-fusion", "--graph-k", "4"])
     spec = spec_from_args(args)
+    assert not spec.surfelwarp_fusion
+    assert spec.surfelwarp_warp_field.graph_k == spec.dynamicfusion.warp_field.graph_k == 4
     assert spec.max_frames == 3 and spec.preprocess.clip_far_m == 2.0 and args.render_frames == [1, 2]
     assert spec.dynamicfusion.tsdf.voxel_size_m == 0.01 and spec.dynamicfusion.tsdf.truncation_m == pytest.approx(0.03)
     assert spec.dynamicfusion.hierarchical_graph
     with pytest.raises(InputError, match="does not exist"):
         compare(spec)
     assert not (tmp_path / "o").exists()
+
+
+def test_cli_rejects_bad_input_with_status_2(tmp_path):
+    def run(*args):
+        proc = subprocess.run([sys.executable, "-m", "surfelwarp", "compare", *map(str, args)],
+                              capture_output=True, text=True)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        return proc.stderr
+
+    out = tmp_path / "out"
+    (tmp_path / "empty").mkdir()
+    assert str(tmp_path / "empty") in run(tmp_path / "empty", "--out", out)      # no known layout
+    assert "--voxel-size must be positive" in run(tmp_path / "missing", "--out", out, "--voxel-size", "-1")
+    (tmp_path / "file").write_text("x")
+    assert "not a folder" in run(tmp_path / "empty", "--out", tmp_path / "file")
+    assert not out.exists()
+
+
+def fake_metrics(seconds: dict[str, dict[str, float]], fusion=False) -> dict:
+    frames = lambda s: [{"frame": i, "seconds": {**s, "total": sum(s.values())}} for i in range(3)]  # noqa: E731
+    return {"surfelwarp": {"config": {"method": {"fusion": fusion}}, "frames": frames(seconds["surfelwarp"])},
+            "dynamicfusion": {"config": {"method": {}}, "frames": frames(seconds["dynamicfusion"])}}
+
+
+def test_speed_splits_tracking_from_the_model_update():
+    metrics = fake_metrics({"surfelwarp": {"read": 0.01, "preprocess": 0.04, "solver_maps": 0.05, "rigid": 0.05,
+                                           "nonrigid": 0.1, "warp": 0.01},
+                            "dynamicfusion": {"read": 0.01, "preprocess": 0.04, "solver_maps": 0.02, "rigid": 0.05,
+                                              "predict": 0.03, "nonrigid": 0.15, "warp": 0.2, "fusion": 0.05}})
+    sp = speed(metrics)
+    assert sp["surfelwarp"] == pytest.approx({"total": 260, "input": 50, "tracker": 200, "model": 10})
+    assert sp["dynamicfusion"] == pytest.approx({"total": 550, "input": 50, "tracker": 250, "model": 250})
+    assert sp["ratio"] == pytest.approx(550 / 260) and sp["ratio_bound"] == pytest.approx(550 / 250)
+    text = "\n".join(speed_lines(metrics))
+    assert "SurfelWarp is 2.12x faster" in text and "at most 2.20x faster" in text and "template tracking" in text
+    metrics["surfelwarp"]["config"]["method"]["fusion"] = True
+    assert "surfel fusion (`fusion=True`)" in "\n".join(speed_lines(metrics))
+    assert "unknown variant" in surfelwarp_variant({"config": {"method": {"fusion": {"max_weight": 1}}}})
+
+
+def test_touch_ground_truth_gives_the_contact_phases(tmp_path):
+    seq = synth.generate("touch", tmp_path / "touch", frames=48, size=(32, 24))
+    frames, gap = contact_gaps(seq)
+    assert list(frames) == list(range(48))
+    # Open: the fingers' surfaces are 2 x 2 cm apart; they touch around frame 30 (x = 0.5).
+    assert gap[0] == pytest.approx(40, abs=0.5) and gap[30] < 0.05
+    phases = topology_phases(frames, gap)
+    contact = phases["in contact"]
+    assert contact == list(range(contact[0], contact[-1] + 1)) and 19 <= contact[0] <= 23 and 37 <= contact[-1] <= 41
+    assert phases["before contact"] == list(range(contact[0]))
+    assert phases["after separation"] == list(range(contact[-1] + 1, 48))
+    assert all(gap[f] < 1.0 for f in contact) and all(gap[f] >= 1.0 for f in phases["after separation"])
+    # One rigid part only, or parts that never touch: no topology change.
+    assert topology_phases(frames, gap + 5.0) is None
+    assert contact_gaps(synth.generate("sheet", tmp_path / "sheet", frames=2, size=(32, 24))) is None
+    results = {n: {"frames": [{"frame": f, "accuracy_median_mm": f + k, "epe_mean_mm": None} for f in range(0, 48, 6)]}
+               for k, n in enumerate(METHODS)}
+    avg = phase_averages(results, phases)
+    after = [f for f in range(0, 48, 6) if f in phases["after separation"]]
+    assert avg["after separation"]["surfelwarp"]["frames"] == after
+    assert avg["after separation"]["dynamicfusion"]["accuracy_median_mm"] == pytest.approx(np.mean(after) + 1)
+    assert avg["after separation"]["surfelwarp"]["epe_mean_mm"] is None

@@ -325,3 +325,99 @@ def test_real_camera_motion_on_7scenes():
 def test_rejects_unknown_robust_penalty(problem):
     with pytest.raises(ValueError):
         problem.solve(NonRigidParams(robust="cauchy"))
+
+
+# ---------------------------------------------------------------- fast paths (block pattern, PCG)
+
+def turned_field(problem, seed=5):
+    """The problem's field with node rotations near +-170 degrees about one axis, so that the
+    blend's antipodal fix flips the sign of many neighbours, plus small random motion."""
+    rng = np.random.default_rng(seed)
+    m = problem.field.num_nodes
+    xi = rng.normal(size=(m, 6)) * np.array([0.05, 0.05, 0.05, 0.01, 0.01, 0.01])
+    xi[:, 2] += np.where(rng.random(m) < 0.5, -1, 1) * np.radians(170)
+    return apply_update(problem.field, xi)
+
+
+def test_indexed_blend_equals_dq_blend_with_sign_flips(problem):
+    from surfelwarp.dual_quaternion import dq_blend, dq_blend_indexed
+    for field in (random_field(problem), turned_field(problem)):
+        q = field.dual_quaternions()
+        ref = dq_blend(q[problem.knn], problem.weights, normalize=False)
+        blended, signed = dq_blend_indexed(q, problem.knn, problem.weights)
+        assert np.abs(blended - ref).max() < 1e-12
+        assert np.allclose(np.abs(signed), problem.weights)
+    assert np.mean(signed < 0) > 0.05                   # the flips were exercised
+
+
+@pytest.mark.parametrize("lookup", ["table", "sparse"])
+def test_factored_normal_equations_equal_the_generic_ones(problem, lookup, monkeypatch):
+    from surfelwarp import nonrigid as nr
+    from surfelwarp.dual_quaternion import _components
+    if lookup == "sparse":                              # the node-pair lookup of large graphs
+        monkeypatch.setattr(nr.BlockPattern, "_LUT_MAX", 0)
+    rng = np.random.default_rng(6)
+    field = turned_field(problem)
+    knn, w = problem.knn.astype(np.int64), problem.weights.astype(np.float64)
+    sel = np.sort(rng.choice(len(knn), 3000, replace=False))
+    n = rng.normal(size=(len(sel), 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    r, rw = rng.normal(size=len(sel)) * 0.01, rng.uniform(0.2, 1.0, len(sel))
+    p = problem.points.astype(np.float64)
+    pattern = nr.BlockPattern(field.num_nodes, field.graph, knn)
+    dq = field.dual_quaternions()
+    b, signed = nr.dq_blend_indexed(dq, knn, w)
+    H, g, diag = nr._normal_equations_factored(field, pattern, sel, b, signed, _components(p), n,
+                                               nr._twist_dual_quaternions(field, dq), r, rw, 5.0)
+    J = data_jacobian(field, p[sel], knn[sel], w[sel], n)
+    H_ref, g_ref = normal_equations(field, J, knn[sel], r, rw, 5.0)
+    H, H_ref = H.toarray(), H_ref.toarray()
+    assert np.allclose(H, H_ref, atol=1e-10 * np.abs(H_ref).max())
+    assert np.allclose(g, g_ref, atol=1e-10 * np.abs(g_ref).max())
+    m = field.num_nodes
+    assert np.allclose(diag, H.reshape(m, 6, m, 6)[np.arange(m), :, np.arange(m)])
+
+
+def test_pcg_step_agrees_with_the_direct_solve(problem):
+    from surfelwarp.nonrigid import solve_step_pcg
+    rng = np.random.default_rng(7)
+    field = random_field(problem, 0.1)
+    idx = rng.choice(len(problem.points), 20000, replace=False)
+    p, knn, w = problem.points[idx].astype(np.float64), problem.knn[idx], problem.weights[idx].astype(np.float64)
+    d, n = problem.truth[idx], problem.normals[idx].astype(np.float64)
+    r = data_residuals(field, p, knn, w, d, n)
+    H, g = normal_equations(field, data_jacobian(field, p, knn, w, n), knn, r, np.ones_like(r), 5.0)
+    exact = solve_step(H, g, 1e-6)
+    A = H.toarray() + 1e-6 * np.mean(H.diagonal()) * np.eye(H.shape[0])
+    for rtol in (1e-4, 1e-8):
+        x, its, ok = solve_step_pcg(H, g, 1e-6, rtol=rtol, max_iterations=2000)
+        residual = np.linalg.norm(A @ x + g) / np.linalg.norm(g)
+        err = np.linalg.norm(x - exact) / np.linalg.norm(exact)
+        print(f"PCG rtol {rtol:.0e}: {its} iterations, residual {residual:.1e}, step error vs LU {err:.1e}")
+        assert ok and residual <= rtol * (1 + 1e-6)
+        assert err < (1e-2 if rtol == 1e-4 else 1e-6)
+    x, its, ok = solve_step_pcg(H, g, 1e-6, rtol=1e-8, max_iterations=3)
+    assert not ok and its == 3
+    x, its, ok = solve_step_pcg(H, np.zeros_like(g), 1e-6)
+    assert ok and its == 0 and not np.any(x)
+
+
+def test_pcg_solve_matches_the_direct_solve_and_falls_back(problem):
+    """Whole solves: PCG (default), PCG that cannot converge (so every step falls back to sparse
+    LU) and sparse LU end at the same field."""
+    direct, res_d = problem.solve(NonRigidParams(linear_solver="direct"))
+    pcg, res_p = problem.solve()
+    fallback, res_f = problem.solve(NonRigidParams(pcg_max_iterations=1))
+    for field, res in ((pcg, res_p), (fallback, res_f)):
+        diff = problem.error(field) - problem.error(direct)
+        print(f"vs direct: {res.iterations} vs {res_d.iterations} iterations, energy {res.energy:.6g} vs "
+              f"{res_d.energy:.6g}, largest difference in point error {np.abs(diff).max() * 1e6:.2f} um")
+        assert res.iterations == res_d.iterations and res.converged == res_d.converged
+        assert res.energy == pytest.approx(res_d.energy, rel=1e-4)
+        assert np.abs(diff).max() < 1e-5
+    assert res_f.energies == pytest.approx(res_d.energies, rel=1e-9)
+
+
+def test_rejects_unknown_linear_solver(problem):
+    with pytest.raises(ValueError):
+        problem.solve(NonRigidParams(linear_solver="cholesky"))

@@ -252,3 +252,25 @@ def test_node_distance_weight_matches_reference():
                                     np.zeros((2, 1), np.int32), 0.025)
     assert near_far[0] == pytest.approx(1.0) and near_far[1] == pytest.approx(np.exp(-4.5), rel=1e-4)
     assert node_distance_weight(np.zeros((1, 3)), np.zeros((0, 3)), one, 0.025)[0] == 0
+
+
+def test_fusing_a_voxel_subset_updates_exactly_those_voxels():
+    vol = plane_volume()
+    centres = vol.voxel_centres()
+    rng = np.random.default_rng(2)
+    ids = np.sort(rng.choice(vol.num_voxels, vol.num_voxels // 3, replace=False))
+    weights = rng.uniform(0.5, 1.5, vol.num_voxels).astype(np.float32)
+    depth = np.full((K.height, K.width), 0.5, np.float32)
+    full, part = plane_volume(), plane_volume()
+    fuse(full, centres, weights, np.eye(4), depth, K, P)
+    res = fuse(part, centres[ids], weights[ids], np.eye(4), depth, K, P, voxels=ids)
+    t_full, t_part = full.tsdf.reshape(-1), part.tsdf.reshape(-1)
+    w_full, w_part = full.weight.reshape(-1), part.weight.reshape(-1)
+    assert np.array_equal(t_part[ids], t_full[ids]) and np.array_equal(w_part[ids], w_full[ids])
+    rest = np.setdiff1d(np.arange(vol.num_voxels), ids)
+    assert (w_part[rest] == 0).all() and (t_part[rest] == 1).all()
+    assert res.updated == np.count_nonzero(w_part) > 10_000
+    with pytest.raises(ValueError):
+        fuse(part, None, 1.0, np.eye(4), depth, K, P, voxels=ids)
+    with pytest.raises(ValueError):
+        fuse(part, centres[ids], weights, np.eye(4), depth, K, P, voxels=ids)
