@@ -29,22 +29,12 @@ METHODS = ("surfelwarp", "dynamicfusion")
 NO_GROUND_TRUTH = "no ground truth"
 
 
-# The SurfelWarp the comparison runs by default: the full pipeline (surfel fusion, Sec. VI) if
-# this is True and pipeline.py provides it, else template tracking (fusion=False). `compare
-# --no-fusion` asks for the template tracker; report.md says which one ran.
-SURFELWARP_FUSION = True
-
-
-def make_surfelwarp(intrinsics: Intrinsics, warp_field=None, fusion: bool = SURFELWARP_FUSION):
-    """warp_field: WarpFieldParams replacing SurfelWarp's default (None keeps it)."""
+def make_surfelwarp(intrinsics: Intrinsics, warp_field=None, fusion: bool = True):
+    """The full pipeline, or template tracking with fusion=False; warp_field: WarpFieldParams
+    replacing SurfelWarp's default (None keeps it)."""
     from .pipeline import SurfelWarpMethod, SurfelWarpParams
     params = SurfelWarpParams() if warp_field is None else replace(SurfelWarpParams(), warp_field=warp_field)
-    if fusion:
-        try:
-            return SurfelWarpMethod(intrinsics, params, fusion=True)
-        except NotImplementedError:
-            pass
-    return SurfelWarpMethod(intrinsics, params, fusion=False)
+    return SurfelWarpMethod(intrinsics, params, fusion=fusion)
 
 
 def surfelwarp_variant(metrics: dict) -> str:
@@ -78,7 +68,7 @@ class CompareSpec:
     preprocess: PreprocessParams = PreprocessParams()
     dynamicfusion: object | None = None        # DynamicFusionParams, None = defaults
     surfelwarp_warp_field: object | None = None  # WarpFieldParams for SurfelWarp, None = its default
-    surfelwarp_fusion: bool = SURFELWARP_FUSION  # False: SurfelWarp as template tracking
+    surfelwarp_fusion: bool = True  # False: SurfelWarp as template tracking
     progress: bool | None = False
 
 
