@@ -5,17 +5,11 @@ uniform vec2 u_size;       // grid width, height in pixels
 uniform vec2 u_near_far;   // metres
 
 in vec3 in_position;       // camera frame
-in vec3 in_normal;
-in float in_confidence;
 
 flat out int v_index;
-flat out vec4 v_vertex;    // xyz position, w confidence
-flat out vec3 v_normal;
 
 void main() {
     v_index = gl_VertexID;
-    v_vertex = vec4(in_position, in_confidence);
-    v_normal = in_normal;
     float z = in_position.z;
     // The negated test also rejects NaN depths; (2, 2, 2) is outside the clip volume.
     if (!(z > u_near_far.x && z < u_near_far.y)) {

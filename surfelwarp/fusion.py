@@ -71,8 +71,7 @@ def find_correspondences(maps: FusionMaps, obs: CameraObservation, live_confiden
     depth_n = obs.normal_map[rows, cols].T
     confidence = np.asarray(live_confidence, np.float32)
     flat_index = maps.index.reshape(-1)
-    flat_vertex = maps.vertex.reshape(-1, 3)
-    flat_normal = maps.normal.reshape(-1, 3)
+    points, normals = maps.points.T, maps.normals.T     # (3, N): component-major gathers
     max_d2 = np.float32(params.distance_threshold_m ** 2)
     r0, c0 = _window_origin(rows, s, w), _window_origin(cols, s, w)
 
@@ -89,10 +88,10 @@ def find_correspondences(maps: FusionMaps, obs: CameraObservation, live_confiden
             cand = np.flatnonzero(k >= 0)
             if not len(cand):
                 continue
-            kc, lc = k[cand], lin[cand]
-            diff = flat_vertex[lc].T - depth_v[:, cand]
+            kc = k[cand]
+            diff = points[:, kc] - depth_v[:, cand]
             d2 = np.einsum("ij,ij->j", diff, diff)
-            dot = np.einsum("ij,ij->j", flat_normal[lc].T, depth_n[:, cand])
+            dot = np.einsum("ij,ij->j", normals[:, kc], depth_n[:, cand])
             ok = (d2 <= max_d2) & (dot >= params.normal_threshold)
             cand, kc, d2 = cand[ok], kc[ok], d2[ok]
             c = confidence[kc]

@@ -168,15 +168,13 @@ def test_highest_confidence_then_closest(obs):
     n = obs.normal_map[rows, cols]
     shape = (K.height * 4, K.width * 4)
     index = np.full(shape, -1, np.int32)
-    vertex = np.zeros(shape + (3,), np.float32)
-    normal = np.zeros(shape + (3,), np.float32)
+    points = np.zeros((3 * p, 3), np.float32)
     # Candidate a: 2 mm off, b: 1 mm off, c: 6 mm off, at three sub-pixels of the block.
     offsets = {0: (0, 0, 0.002), 1: (3, 3, 0.001), 2: (1, 2, 0.006)}
     for slot, (dy, dx, d) in offsets.items():
         index[4 * rows + dy, 4 * cols + dx] = 3 * np.arange(p) + slot
-        vertex[4 * rows + dy, 4 * cols + dx] = v + d * n
-        normal[4 * rows + dy, 4 * cols + dx] = n
-    maps = FusionMaps(index, vertex, normal, 4, K.supersampled(4))
+        points[slot::3] = v + d * n
+    maps = FusionMaps(index, 4, K.supersampled(4), points, np.repeat(n, 3, axis=0))
 
     def pick(conf, maps=maps):
         return find_correspondences(maps, obs, np.tile(np.asarray(conf, np.float32), p)).surfel_index % 3
@@ -184,9 +182,9 @@ def test_highest_confidence_then_closest(obs):
     assert (pick([5, 5, 9]) == 2).all()      # highest confidence wins even farther away
     assert (pick([5, 5, 5]) == 1).all()      # confidence tie: the closest
     assert (pick([6, 5, 5]) == 0).all()
-    far = vertex.copy()
-    far[4 * rows + 1, 4 * cols + 2] = v + 0.012 * n
-    assert (pick([5, 5, 9], replace(maps, vertex=far)) == 1).all()   # c beyond 1 cm: b
+    far = points.copy()
+    far[2::3] = v + 0.012 * n
+    assert (pick([5, 5, 9], replace(maps, points=far)) == 1).all()   # c beyond 1 cm: b
     # The paper's 1 mm gate leaves only b.
     tight = FusionParams(distance_threshold_m=0.0015)
     assert (find_correspondences(maps, obs, np.full(3 * p, 5, np.float32), tight).surfel_index % 3 == 1).all()

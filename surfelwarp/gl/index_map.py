@@ -1,8 +1,10 @@
 """The fusion index map (SurfelWarp Sec. VI-A): surfels drawn as unsized points on a supersampled grid.
 
 Each surfel lands on at most one pixel (the one whose centre is nearest its projection); where
-several land on the same pixel the closest to the camera wins. Pixels store the surfel index and
-its camera-frame position, normal and (optionally) confidence.
+several land on the same pixel the closest to the camera wins. Pixels store only the surfel
+index: a surfel's position, normal and confidence are gathers from the arrays that were drawn,
+which travel with the map. At 4x supersampling on llvmpipe, clearing and reading back two
+RGBA32F attribute maps (2560x1920) cost more than drawing the points.
 """
 from __future__ import annotations
 
@@ -21,13 +23,33 @@ FAR_M = 20.0
 
 @dataclass(frozen=True)
 class FusionMaps:
-    """Maps of shape (H*s, W*s[, 3]); row 0 is the top image row. Empty pixels: index -1, zeros."""
-    index: np.ndarray            # int32
-    vertex: np.ndarray           # float32, camera frame
-    normal: np.ndarray           # float32
+    """The index map (H*s, W*s), int32, row 0 the top image row, -1 where empty, and the
+    surfels it indexes: camera-frame points and normals (N, 3) float32, confidences (N,)."""
+    index: np.ndarray
     supersample: int
     intrinsics: Intrinsics       # of the supersampled grid
-    confidence: np.ndarray | None = None   # float32, only when confidences were given
+    points: np.ndarray
+    normals: np.ndarray
+    confidences: np.ndarray | None = None
+
+    def _per_pixel(self, values: np.ndarray) -> np.ndarray:
+        hit = self.index >= 0
+        out = np.zeros(self.index.shape + values.shape[1:], values.dtype)
+        out[hit] = values[self.index[hit]]
+        return out
+
+    @property
+    def vertex(self) -> np.ndarray:
+        """(H*s, W*s, 3) camera-frame position per pixel, zeros where empty."""
+        return self._per_pixel(self.points)
+
+    @property
+    def normal(self) -> np.ndarray:
+        return self._per_pixel(self.normals)
+
+    @property
+    def confidence(self) -> np.ndarray | None:
+        return None if self.confidences is None else self._per_pixel(self.confidences)
 
 
 class GrowingBuffer:
@@ -51,56 +73,43 @@ class GrowingBuffer:
 
 
 class _Targets:
-    """Framebuffer of one size: index (R32I), vertex and normal (RGBA32F, read back as RGB),
-    confidence (R32F) and a depth buffer."""
+    """Framebuffer of one size: index (R32I) and a depth buffer."""
 
     def __init__(self, ctx: moderngl.Context, width: int, height: int):
         size = (width, height)
-        self.attachments = [ctx.renderbuffer(size, components=1, dtype="i4"),
-                            ctx.renderbuffer(size, components=4, dtype="f4"),
-                            ctx.renderbuffer(size, components=4, dtype="f4"),
-                            ctx.renderbuffer(size, components=1, dtype="f4")]
+        self.index = ctx.renderbuffer(size, components=1, dtype="i4")
         self.depth = ctx.depth_renderbuffer(size)
-        self.fbo = ctx.framebuffer(self.attachments, self.depth)
+        self.fbo = ctx.framebuffer([self.index], self.depth)
 
 
 class _Renderer:
     def __init__(self, ctx: moderngl.Context):
         self.ctx = ctx
         self.program = load_program(ctx, vertex="index_map.vert.glsl", fragment="index_map.frag.glsl")
-        self.buffers = {name: GrowingBuffer(ctx) for name in ("position", "normal", "confidence")}
+        self.positions = GrowingBuffer(ctx)
         self.vao: moderngl.VertexArray | None = None
-        self.vao_key = None
+        self.vao_generation = None
         self.targets: dict[tuple[int, int], _Targets] = {}
 
     def _vertex_array(self) -> moderngl.VertexArray:
-        key = tuple(b.generation for b in self.buffers.values())
-        if self.vao is None or key != self.vao_key:
+        if self.vao is None or self.positions.generation != self.vao_generation:
             if self.vao is not None:
                 self.vao.release()
-            b = self.buffers
-            self.vao = self.ctx.vertex_array(self.program, [
-                (b["position"].buffer, "3f", "in_position"),
-                (b["normal"].buffer, "3f", "in_normal"),
-                (b["confidence"].buffer, "1f", "in_confidence")])
-            self.vao_key = key
+            self.vao = self.ctx.vertex_array(self.program, [(self.positions.buffer, "3f", "in_position")])
+            self.vao_generation = self.positions.generation
         return self.vao
 
-    def render(self, positions, normals, confidence, intr: Intrinsics, near: float, far: float,
-               with_confidence: bool):
+    def render(self, positions: np.ndarray, intr: Intrinsics, near: float, far: float) -> np.ndarray:
         width, height = intr.width, intr.height
-        n = len(positions)
-        self.buffers["position"].upload(positions)
-        self.buffers["normal"].upload(normals)
-        self.buffers["confidence"].upload(confidence)
+        self.positions.upload(positions)
         if (width, height) not in self.targets:
             self.targets[(width, height)] = _Targets(self.ctx, width, height)
         fbo = self.targets[(width, height)].fbo
         ctx = self.ctx
         fbo.use()
         fbo.viewport = (0, 0, width, height)
-        # moderngl clears every attachment with float values; 0.0 has the all-zero bit pattern,
-        # which is why the index attachment stores index + 1.
+        # moderngl clears with float values; 0.0 has the all-zero bit pattern, which is why the
+        # index attachment stores index + 1.
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         ctx.enable_only(moderngl.DEPTH_TEST)
         ctx.depth_func = "<"
@@ -109,14 +118,11 @@ class _Renderer:
         prog["u_K"].value = (intr.fx, intr.fy, intr.cx, intr.cy)
         prog["u_size"].value = (float(width), float(height))
         prog["u_near_far"].value = (near, far)
-        if n:
-            self._vertex_array().render(moderngl.POINTS, vertices=n)
+        if len(positions):
+            self._vertex_array().render(moderngl.POINTS, vertices=len(positions))
         index = read_attachment(fbo, 0, 1, "i4", height, width)
         index -= 1
-        return (index,
-                read_attachment(fbo, 1, 3, "f4", height, width),
-                read_attachment(fbo, 2, 3, "f4", height, width),
-                read_attachment(fbo, 3, 1, "f4", height, width) if with_confidence else None)
+        return index
 
 
 def read_attachment(fbo: moderngl.Framebuffer, attachment: int, components: int, dtype: str,
@@ -159,7 +165,6 @@ def render_index_map(positions: np.ndarray, normals: np.ndarray, intrinsics: Int
             else np.asarray(confidence, np.float32).reshape(-1))
     if len(conf) != len(positions):
         raise ValueError("confidence and positions differ in length")
-    index, vertex, normal, conf_map = _renderer().render(positions, normals, conf, intr, near_m, far_m,
-                                                         confidence is not None)
-    return FusionMaps(index=index, vertex=vertex, normal=normal, supersample=int(supersample),
-                      intrinsics=intr, confidence=conf_map)
+    index = _renderer().render(positions, intr, near_m, far_m)
+    return FusionMaps(index=index, supersample=int(supersample), intrinsics=intr, points=positions,
+                      normals=normals, confidences=None if confidence is None else conf)
