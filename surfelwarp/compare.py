@@ -39,13 +39,13 @@ def make_surfelwarp(intrinsics: Intrinsics, warp_field=None, fusion: bool = True
 
 def surfelwarp_variant(metrics: dict) -> str:
     """Which SurfelWarp ran, from its metrics.json config."""
-    fusion = metrics.get("config", {}).get("method", {}).get("fusion")
+    fusion = metrics.get("config", {}).get("method", {}).get("fusion_enabled")
     if fusion is False:
         return ("template tracking (`fusion=False`: the first frame's surfels tracked, never fused, "
                 "extended or reinitialised)")
     if fusion is True:
         return "the full pipeline with surfel fusion (`fusion=True`)"
-    return "an unknown variant (its metrics.json has no boolean `fusion`)"
+    return "an unknown variant (its metrics.json has no boolean `fusion_enabled`)"
 
 
 def make_dynamicfusion(intrinsics: Intrinsics, params=None):

@@ -68,7 +68,7 @@ class SurfelWarpMethod:
         self._next_id = 0
 
     def config(self) -> dict:
-        return self.params.to_dict() | {"fusion": self.fusion}
+        return self.params.to_dict() | {"fusion_enabled": self.fusion}   # False: template tracking
 
     @property
     def T_camera_to_world(self) -> np.ndarray:

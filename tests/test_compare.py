@@ -58,7 +58,7 @@ def test_compare_runs_both_methods_and_writes_the_report(compared):
     totals = {n: np.median([f["seconds"]["total"] for f in metrics[n]["frames"][1:]]) for n in METHODS}
     ratio = totals["dynamicfusion"] / totals["surfelwarp"]
     assert f"**Speed ratio: SurfelWarp is {ratio:.2f}x faster per frame than DynamicFusion**" in text
-    assert metrics["surfelwarp"]["config"]["method"]["fusion"] is False
+    assert metrics["surfelwarp"]["config"]["method"]["fusion_enabled"] is False
     assert "SurfelWarp ran as template tracking (`fusion=False`" in text
     assert "Warp field of both: nodes 25 mm apart, 4 skinning and 8 regularisation neighbours." in text
     # DynamicFusion warped only the voxels that could be fused, and fused some of each.
@@ -125,7 +125,7 @@ def test_cli_rejects_bad_input_with_status_2(tmp_path):
 
 def fake_metrics(seconds: dict[str, dict[str, float]], fusion=False) -> dict:
     frames = lambda s: [{"frame": i, "seconds": {**s, "total": sum(s.values())}} for i in range(3)]  # noqa: E731
-    return {"surfelwarp": {"config": {"method": {"fusion": fusion}}, "frames": frames(seconds["surfelwarp"])},
+    return {"surfelwarp": {"config": {"method": {"fusion_enabled": fusion}}, "frames": frames(seconds["surfelwarp"])},
             "dynamicfusion": {"config": {"method": {}}, "frames": frames(seconds["dynamicfusion"])}}
 
 
@@ -140,7 +140,7 @@ def test_speed_splits_tracking_from_the_model_update():
     assert sp["ratio"] == pytest.approx(550 / 260) and sp["ratio_bound"] == pytest.approx(550 / 250)
     text = "\n".join(speed_lines(metrics))
     assert "SurfelWarp is 2.12x faster" in text and "at most 2.20x faster" in text and "template tracking" in text
-    metrics["surfelwarp"]["config"]["method"]["fusion"] = True
+    metrics["surfelwarp"]["config"]["method"]["fusion_enabled"] = True
     assert "surfel fusion (`fusion=True`)" in "\n".join(speed_lines(metrics))
     assert "unknown variant" in surfelwarp_variant({"config": {"method": {"fusion": {"max_weight": 1}}}})
 
