@@ -269,7 +269,8 @@ def test_unstable_surfels_removed_after_30_frames(gl, obs):
 
 
 def test_real_frames_need_a_gate_wider_than_1mm(gl):
-    """7-Scenes frames 0 and 5 with the ground-truth poses: 1 cm fuses most pixels, 1 mm few."""
+    """7-Scenes frames 0 and 5 with the ground-truth poses: 1 cm fuses most pixels, 1 mm few;
+    widening the gate with the sensor noise at 1-3 m fuses more than 1 cm alone."""
     root = DATA / "rigid-7scenes"
     if not root.is_dir():
         pytest.skip(f"{root} is absent")
@@ -286,7 +287,16 @@ def test_real_frames_need_a_gate_wider_than_1mm(gl):
     T = invert(T_5_to_0)
     maps = render_index_map(transform_points(T, model.live_position.astype(np.float64)),
                             model.live_normal @ T[:3, :3].T, intr, supersample=4)
-    share = {gate: len(find_correspondences(maps, obs5, model.confidence,
-                                            FusionParams(distance_threshold_m=gate))[0]) / obs5.num_valid
-             for gate in (0.001, 0.01)}
-    assert share[0.01] > 0.7 and share[0.001] < 0.2, share
+    gates = {0.001: FusionParams(distance_threshold_m=0.001, distance_noise_sigmas=0),
+             0.01: FusionParams(distance_threshold_m=0.01, distance_noise_sigmas=0), "noise": FusionParams()}
+    share = {gate: len(find_correspondences(maps, obs5, model.confidence, params)[0]) / obs5.num_valid
+             for gate, params in gates.items()}
+    assert share[0.01] > 0.7 and share[0.001] < 0.2 and share["noise"] > share[0.01] + 0.02, share
+
+
+def test_distance_gate_follows_the_axial_noise():
+    params = FusionParams()
+    gate = fusion.distance_gate_m(np.array([0.5, 0.85, 1.5, 2.5]), params)
+    sigma = 0.0012 + 0.0019 * (np.array([1.5, 2.5]) - 0.4) ** 2
+    np.testing.assert_allclose(gate, [0.01, 0.01, *(3 * sigma)], rtol=1e-6)
+    assert (fusion.distance_gate_m(np.array([2.5]), FusionParams(distance_noise_sigmas=0)) == np.float32(0.01)).all()
