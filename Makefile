@@ -28,9 +28,9 @@ egl: $(STAMP)
 
 demo: setup
 	$(PY) -m surfelwarp synth sheet --out $(DEMO)/sheet --frames 40
-	$(PY) -m surfelwarp run $(DEMO)/sheet --out $(DEMO)/run --method surfelwarp --no-fusion
+	$(PY) -m surfelwarp run $(DEMO)/sheet --out $(DEMO)/run --method surfelwarp
 	$(PY) -m surfelwarp eval $(DEMO)/run $(DEMO)/sheet
-	@echo "Demo outputs: $(DEMO)/run (live/*.ply, model.ply, metrics.json, eval.json)"
+	@echo "Demo outputs: $(DEMO)/run (live/*.ply, model.ply, metrics.json, surfels.png, eval.json)"
 
 test: setup
 	$(PY) -m pytest -q

@@ -55,6 +55,14 @@ class RunOutputs:
     def save_live(self, frame: int, vertices: np.ndarray, faces: np.ndarray | None = None) -> None:
         write_ply(self.live_path(frame), vertices, faces)
 
+    def remove_stale_live(self, frames: set[int]) -> None:
+        """Drop live/frame-*.ply files of an earlier run into the same folder that this run
+        will not rewrite, so that live/ and metrics.json describe one run."""
+        for path in (self.out_dir / "live").glob("frame-*.ply"):
+            stem = path.name[len("frame-"):-len(".ply")]
+            if stem.isdigit() and int(stem) not in frames:
+                path.unlink()
+
     def save_model(self, vertices: np.ndarray, faces: np.ndarray | None = None) -> None:
         write_ply(self.out_dir / "model.ply", vertices, faces)
 

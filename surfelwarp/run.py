@@ -40,6 +40,9 @@ def run_sequence(seq: Sequence, out_dir: Path, method, *, save_every: int = 10,
             outputs.add_frame(record)
             if i % save_every == 0 or i == len(seq) - 1:
                 outputs.save_live(files.index, *method.live_vertices())
+                if i == 0:
+                    outputs.remove_stale_live({f.index for j, f in enumerate(seq.files)
+                                               if j % save_every == 0 or j == len(seq) - 1})
                 outputs.write_metrics()
             bar.update(1)
             bar.set_postfix_str(f"surfels={record.surfels}", refresh=False)

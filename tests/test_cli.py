@@ -132,3 +132,14 @@ def test_bad_flags(tmp_path):
     assert_clean_error(code, err, "--depth-scale")
     code, _, err = run_cli("run", seq, "--out", tmp_path / "o", "--start", "99")
     assert_clean_error(code, err, "no depth frames")
+
+
+def test_rerun_into_the_same_folder_leaves_only_its_own_frames(tmp_path):
+    seq = write_sequence(tmp_path / "seq", frames=range(6))
+    out = tmp_path / "out"
+    assert run_cli("run", seq, "--out", out, "--method", "observe", "--save-every", 1)[0] == 0
+    (out / "live" / "notes.txt").write_text("mine")
+    assert run_cli("run", seq, "--out", out, "--method", "observe", "--max-frames", 3)[0] == 0
+    assert sorted(p.name for p in (out / "live").iterdir()) == ["frame-000000.ply", "frame-000002.ply", "notes.txt"]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert [f["frame"] for f in metrics["frames"]] == [0, 1, 2]
