@@ -38,8 +38,9 @@ __all__ = ["SurfelWarpMethod", "SurfelWarpParams", "transform_surfels", "maps_to
 
 def transform_surfels(T: np.ndarray, points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Positions and normals moved by the rigid transform T, as float32."""
-    R = T[:3, :3].astype(np.float32)
-    return transform_points(T, points).astype(np.float32), (normals @ R.T).astype(np.float32)
+    R = np.asarray(T)[:3, :3].astype(np.float32)
+    return (transform_points(T, np.asarray(points, np.float32)),
+            np.asarray(normals, np.float32) @ R.T)
 
 
 def maps_to_world(maps: SolverMaps, T_camera_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

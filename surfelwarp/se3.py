@@ -96,8 +96,12 @@ def invert(T: np.ndarray) -> np.ndarray:
 
 
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply one 4x4 transform to (N, 3) points."""
-    return points @ T[:3, :3].T + T[:3, 3]
+    """Apply one 4x4 transform to (N, 3) points, in their precision: float32 points stay
+    float32 (upcasting 100k points to float64 cost several times the product itself)."""
+    points = np.asarray(points)
+    dtype = points.dtype if points.dtype in (np.float32, np.float64) else np.dtype(np.float64)
+    T = np.asarray(T)
+    return points @ T[:3, :3].T.astype(dtype) + T[:3, 3].astype(dtype)
 
 
 def fit_rigid(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
