@@ -31,6 +31,16 @@ def test_misalignment_with_many_appended_triggers_after_consecutive_frames():
     assert fired[0] == 12 + 3          # the third consecutive struggling frame
 
 
+def test_a_long_struggle_does_not_raise_the_bar():
+    trigger = ReinitTrigger(ReinitParams())
+    fired = []
+    for i, (rmse, appended) in enumerate([(0.0004, 100)] * 12 + [(0.0015, 800)] * 30, 1):
+        if trigger.update(rmse, appended, VALID):
+            fired.append(i)
+            trigger.reset()
+    assert fired == [15, 25, 35]
+
+
 @pytest.mark.parametrize("bad", [(0.0015, 100),       # high energy, few appended: not enough
                                  (0.0004, 3000),      # many appended (new geometry), energy normal
                                  (0.0009, 800)])      # above 2x the median, but under the 1 mm floor
