@@ -16,7 +16,10 @@ OUT/live/frame-%06d.ply:
   barycentric point on this frame's GT mesh is its true position; EPE = |live - true|
   (mean, median, % under 1 and 2 cm; also mean and median over the points on moving parts,
   i.e. whose snapped triangle has a vertex marked `moving`). Not computed (null) where
-  reference_frame is the frame itself: such a run claims no correspondence over time.
+  reference_frame is the frame itself: such a run claims no correspondence over time;
+- for scale, the EPE of standing still (zero_motion_epe_mm): how far the surface each live
+  point shows has truly moved since the run's first frame, i.e. what a method that does not
+  track at all (the observe method) would score.
 With DeepDeform-style scene flow (SEQ/scene_flow/<name>_<source>_<target>.sflow): the EPE of
 the target frame's live points whose ref_* position (source frame's camera, reference_frame =
 source) lands on an object pixel with known flow, and, for scale, the EPE of not moving at all.
@@ -130,7 +133,13 @@ class _SyntheticScorer:
         points = self.gt.intrinsics.backproject(depth)[::self.stride, ::self.stride].reshape(-1, 3)
         return points[points[:, 2] > 0]
 
-    def score(self, frame: int, reference: int, live: np.ndarray, normals: np.ndarray, ref: np.ndarray) -> dict:
+    def _carried(self, near, index: int) -> np.ndarray:
+        """The closest points `near` (face + barycentric) on the GT mesh of frame `index`."""
+        corners = self.gt.vertices[index].astype(np.float64)[self.gt.faces[near.face]]
+        return np.einsum("ni,nij->nj", near.bary, corners)
+
+    def score(self, frame: int, reference: int, live: np.ndarray, normals: np.ndarray, ref: np.ndarray,
+              first: int | None = None) -> dict:
         out = dict.fromkeys(FRAME_KEYS)
         out["points"] = len(live)
         if len(live) == 0:
@@ -154,12 +163,15 @@ class _SyntheticScorer:
         ok = np.isfinite(length) & (length > 1e-6)
         if ok.any():
             out["normal_consistency"] = float(np.mean(np.abs(np.sum(normals[ok] * gt_n[ok], 1)) / length[ok]))
+        if first is not None and first != frame:
+            moved = self._carried(near, fi) - self._carried(near, self.gt.index(first))
+            out["zero_motion_epe_mm"] = float(1000 * np.mean(np.linalg.norm(moved, axis=1)))
         if frame == reference:
             # ref_* is the live point itself: the run claims no correspondence over time (the
             # observe method, a tracker's first frame), so an EPE would be vacuously zero.
             return out
         snapped = self.mesh(ri).query(ref)
-        truth = np.einsum("ni,nij->nj", snapped.bary, self.gt.vertices[fi].astype(np.float64)[self.gt.faces[snapped.face]])
+        truth = self._carried(snapped, fi)
         epe_mm = 1000 * np.linalg.norm(live - truth, axis=1)
         out["epe_mean_mm"], out["epe_median_mm"] = float(np.mean(epe_mm)), float(np.median(epe_mm))
         out["epe_under_1cm_pct"], out["epe_under_2cm_pct"] = _pct(epe_mm < 10), _pct(epe_mm < 20)
@@ -247,11 +259,11 @@ def evaluate(run_dir, seq_dir, stride: int = 2) -> dict:
                 if frame not in records:
                     raise InputError(path, f"frame {frame} is not listed in metrics.json")
                 reference = int(records[frame].get("reference_frame", frame))
-                for f in (frame, reference):
+                for f in (frame, reference, min(records)):
                     if f not in truth:
                         raise InputError(seq_dir / "groundtruth.npz", f"has no frame {f} (needed by {path.name})")
                 row = {"frame": frame, "reference_frame": reference}
-                row.update(scorer.score(frame, reference, *_read_live(path)))
+                row.update(scorer.score(frame, reference, *_read_live(path), first=min(records)))
                 rows.append(row)
         finally:
             scorer.release()

@@ -140,6 +140,32 @@ def test_ground_truth_as_a_run_scores_perfectly_and_shifts_give_known_errors(she
         assert row["accuracy_median_mm"] > 0.1
 
 
+def test_standing_still_scores_the_true_motion_since_the_first_frame(sheet, tmp_path):
+    """What the observe method gets: exact geometry, no correspondence claimed (no EPE), and
+    for scale the EPE that not tracking at all would have."""
+    seq, gt = sheet
+    face, bary = sample_surface(gt, 0, 20000, np.random.default_rng(3))
+
+    def observed(frame):
+        pos = at(gt, frame, face, bary)
+        return pos, np.tile([0.0, 0.0, -1.0], (len(pos), 1)), pos
+
+    run = tmp_path / "observe"
+    write_run(run, gt, [0, 3, 5], observed)
+    records = json.loads((run / "metrics.json").read_text())
+    for f in records["frames"]:
+        f["reference_frame"] = f["frame"]
+    (run / "metrics.json").write_text(json.dumps(records))
+    res = evaluate.evaluate(run, seq)
+    rows = {r["frame"]: r for r in res["frames"]}
+    assert rows[0]["zero_motion_epe_mm"] is None and all(r["epe_mean_mm"] is None for r in rows.values())
+    for f in (3, 5):
+        motion = 1000 * np.linalg.norm(at(gt, f, face, bary) - at(gt, 0, face, bary), axis=1).mean()
+        assert rows[f]["zero_motion_epe_mm"] == pytest.approx(motion, rel=1e-3) and motion > 3
+        assert rows[f]["accuracy_median_mm"] < 1e-3
+    assert "EPE of standing still" in evaluate.format_table(res)
+
+
 def test_moving_camera_and_trajectory_error(tmp_path):
     seq = synth.generate("orbit", tmp_path / "orbit", frames=5, size=(128, 96), noise="none")
     gt = synth.load_groundtruth(seq)
