@@ -26,7 +26,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from .camera import Intrinsics
-from .dual_quaternion import dq_to_transform
+from .dual_quaternion import apply_components, dq_to_transform
 from .gl.mesh_maps import render_mesh_maps
 from .observation import CameraObservation
 from .outputs import FrameRecord
@@ -108,25 +108,6 @@ def build_hierarchy(warp_nodes: np.ndarray, epsilon_m: float, levels: int, beta:
     return Hierarchy(nodes, graph, tuple(np.arange(starts[i], starts[i + 1]) for i in range(len(layers))))
 
 
-def _dq_apply(b: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """(n, 3) points p moved by the (8, n) unnormalised blended dual quaternions b, in p's dtype:
-    R p + t with R the rotation of b_r / |b_r| and t = vec(2 b_d conj(b_r)) / |b_r|^2, as
-    dual_quaternion.dq_to_transform, written out per component (no 3x3 matrices)."""
-    w, x, y, z, dw, dx, dy, dz = b
-    px, py, pz = p[:, 0], p[:, 1], p[:, 2]
-    vv = x * x + y * y + z * z
-    inv = 1 / (w * w + vv)
-    a = w * w - vv
-    vp2 = 2 * (x * px + y * py + z * pz)
-    w2 = 2 * w
-    out = np.empty_like(p)
-    # (w^2 - v.v) p + 2 (v.p) v + 2 w (v x p)  +  2 (w dv - dw v + v x dv)
-    out[:, 0] = (a * px + vp2 * x + w2 * (y * pz - z * py + dx) + 2 * (y * dz - z * dy - dw * x)) * inv
-    out[:, 1] = (a * py + vp2 * y + w2 * (z * px - x * pz + dy) + 2 * (z * dx - x * dz - dw * y)) * inv
-    out[:, 2] = (a * pz + vp2 * z + w2 * (x * py - y * px + dz) + 2 * (x * dy - y * dx - dw * z)) * inv
-    return out
-
-
 def warp_points_fast(points: np.ndarray, knn: np.ndarray, weights: np.ndarray, field: WarpField,
                      chunk: int = 1 << 14) -> np.ndarray:
     """warp_field.warp for many points in float32: the same dual quaternion blend (each node's
@@ -144,7 +125,8 @@ def warp_points_fast(points: np.ndarray, knn: np.ndarray, weights: np.ndarray, f
         q = table[k]                                                      # (n, k, 8)
         if not calm:
             w = np.where(np.einsum("nki,ni->nk", q[..., :4], q[:, 0, :4]) < 0, -w, w)
-        out[s:s + chunk] = _dq_apply(np.einsum("vk,vkc->cv", w, q), points[s:s + chunk])
+        moved, _ = apply_components(np.einsum("vk,vkc->cv", w, q), points[s:s + chunk].T)
+        out[s:s + chunk] = np.stack(moved, axis=-1)
     return out
 
 

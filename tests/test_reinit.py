@@ -7,7 +7,7 @@ import pytest
 from surfelwarp.camera import Intrinsics
 from surfelwarp.observation import preprocess
 from surfelwarp.reinit import ReinitParams, ReinitTrigger, unsupported_mask
-from surfelwarp.se3 import invert, se3_exp, transform_points
+from surfelwarp.se3 import se3_exp, transform_points
 
 K = Intrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
 VALID = 10_000
