@@ -2,6 +2,8 @@
 uniform vec4 u_K;
 uniform float u_margin;
 uniform vec2 u_near_far;
+uniform vec2 u_depth_layer;   // (offset, scale) of this draw's depth range in [0, 1]: a later
+                              // draw into a deeper layer only fills pixels left empty
 uniform float u_min_cos;   // smallest |cos| between a pixel ray and a disk normal used in the division
 
 flat in vec3 v_position;
@@ -28,7 +30,7 @@ void main() {
     // No point of the disk is deeper or shallower than this, whatever the clamp did.
     float ez = v_radius * sqrt(max(1.0 - n.z * n.z, 0.0));
     float z = clamp(t, p.z - ez, p.z + ez);
-    gl_FragDepth = (z - u_near_far.x) / (u_near_far.y - u_near_far.x);
+    gl_FragDepth = u_depth_layer.x + u_depth_layer.y * (z - u_near_far.x) / (u_near_far.y - u_near_far.x);
     o_index = v_index + 1;
     o_vertex = vec4(p, 1.0);
     o_normal = vec4(v_normal, 0.0);

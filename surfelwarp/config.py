@@ -38,8 +38,12 @@ class SurfelWarpParams:
     append: AppendParams = field(default_factory=AppendParams)     # Sec. VI-B..D appending
     reinit: ReinitParams = field(default_factory=ReinitParams)     # Sec. VI-F
     # Solver maps draw the stable surfels (fusion.stable_confidence = delta_stable) and those
-    # observed within the last recent_frames frames (delta_recent, Table 1).
+    # observed within the last recent_frames frames (delta_recent, Table 1). recent_draw
+    # 'fill': the recent ones only on pixels no stable surfel covers, so that last frame's
+    # fresh surfels (carrying last frame's pose error) never occlude the stable model, while
+    # newly seen surface is still tracked; 'with': both in one depth test.
     recent_frames: int = 2
+    recent_draw: str = "fill"
     index_map_supersample: int = 4   # Sec. VI-A: 4x4 super-sampled index map
 
     def to_dict(self) -> dict:
@@ -47,7 +51,7 @@ class SurfelWarpParams:
 
 
 # String parameters with a fixed set of values, by field name.
-CHOICES = {"robust": ROBUST, "linear_solver": LINEAR_SOLVERS}
+CHOICES = {"robust": ROBUST, "linear_solver": LINEAR_SOLVERS, "recent_draw": ("fill", "with")}
 
 
 def _bad(path, key: str, problem: str) -> InputError:

@@ -319,7 +319,7 @@ class DynamicFusionMethod:
         solve_field = self.field if self.tree is None else with_hierarchy(self.field, self.tree)
         solved, nonrigid = self.tracker.nonrigid(solve_field, surfels, obs)
         # The deformation tree's upper levels only regularise; the warp nodes are the first ones.
-        self.field = self.tracker.factor(self.field.with_transforms(solved.transforms[:self.field.num_nodes]))
+        self.field = self.tracker.factor(self.field.with_transforms(solved.transforms[:self.field.num_nodes]), nonrigid)
         timer.lap("nonrigid")
 
         depth = self._depth(obs)

@@ -66,6 +66,11 @@ class NonRigidParams:
     pcg_rtol: float = 1e-4             # stop at |(H + mu I) x + g| <= pcg_rtol |g|: steps within
                                        # ~1e-3 of the exact one, final energies within ~1e-4
     pcg_max_iterations: int = 500
+    free_rings: int | None = 2         # nodes more than this many graph edges from every node
+                                       # skinning a solved (visible) surfel are held fixed
+                                       # (None: none are). Out of view they only carry the
+                                       # regulariser; on a room they are most of the graph and
+                                       # make the system slow to solve by PCG.
 
 
 @dataclass(frozen=True)
@@ -78,6 +83,7 @@ class NonRigidResult:
     energies: tuple[float, ...]    # total E at the start of every iteration, then the final one
     converged: bool                # ended on a tiny update or energy decrease (not on the
                                    # iteration limit, an energy rise or too few pairs)
+    node_support: np.ndarray | None = None   # (M,) skinning weight of the final pairs per node
 
     @property
     def data_rmse_m(self) -> float:
@@ -471,6 +477,41 @@ def _normal_equations_factored(field, pattern, sel, b, signed, points, normals, 
     return pattern.matrix(upper), (gd + lambda_reg * gr).reshape(-1), upper[pattern.diag]
 
 
+def free_nodes(graph: np.ndarray, supported: np.ndarray, rings: int) -> np.ndarray:
+    """(M,) bool: the supported nodes and those within `rings` graph edges of one (either
+    direction of an edge counts)."""
+    free = np.asarray(supported, bool).copy()
+    graph = np.asarray(graph, np.int64)
+    for _ in range(max(rings, 0)):
+        grown = free | free[graph].any(axis=1)
+        grown[graph[free].reshape(-1)] = True
+        if np.array_equal(grown, free):
+            break
+        free = grown
+    return free
+
+
+def restrict(H: sp.bsr_matrix, g: np.ndarray, diag_blocks: np.ndarray, keep: np.ndarray):
+    """The system of the nodes `keep` (bool (M,)) with the others held at zero step: H's 6x6
+    blocks between kept nodes, their gradient and diagonal blocks."""
+    m = len(keep)
+    rows = np.repeat(np.arange(m), np.diff(H.indptr))
+    sel = keep[rows] & keep[H.indices]
+    new = np.cumsum(keep) - 1
+    counts = np.bincount(new[rows[sel]], minlength=int(keep.sum()))
+    indptr = np.concatenate([[0], np.cumsum(counts)])
+    n = 6 * int(keep.sum())
+    Hk = sp.bsr_matrix((H.data[sel], new[H.indices[sel]], indptr), shape=(n, n))
+    return Hk, g.reshape(m, 6)[keep].reshape(-1), diag_blocks[keep]
+
+
+def _expand(xi: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """(M, 6) steps, zero for the nodes held fixed."""
+    full = np.zeros((len(free), 6))
+    full[free] = np.reshape(xi, (-1, 6))
+    return full
+
+
 def _damping(H: sp.spmatrix, damping: float) -> float:
     return damping * max(float(np.mean(H.diagonal())), 1e-12)
 
@@ -583,6 +624,7 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
         return _warp_state(f, ref_points, ref_normals, knn, weights)
 
     current, state, energies, steps, converged = field, None, [], 0, False
+    free = np.ones(field.num_nodes, bool) if params.free_rings is None else None
     for _ in range(params.max_iterations):
         state = warped(current) if state is None else state
         dq, b, signed, live, live_n = state
@@ -597,11 +639,19 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
         H, g, diag = _normal_equations_factored(current, pattern, idx, b, signed, ref_points, corr.normals,
                                                 _twist_dual_quaternions(current, dq), r, w,
                                                 params.lambda_reg)
+        if free is None:
+            in_view = np.zeros(current.num_nodes, bool)
+            in_view[knn.reshape(-1)] = True
+            free = free_nodes(current.graph, in_view, params.free_rings)
+        if not free.all():
+            H, g, diag = restrict(H, g, diag, free)
         ok = False
         if params.linear_solver == "pcg":
             xi, _, ok = solve_step_pcg(H, g, params.damping, params.pcg_rtol, params.pcg_max_iterations, diag)
         if not ok:
             xi = solve_step(H, g, params.damping)
+        if not free.all():
+            xi = _expand(xi, free)
         xi = xi.reshape(-1, 6)
         steps += 1
         if not np.all(np.isfinite(xi)):
@@ -626,4 +676,5 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
     corr = _associate(state[3], state[4], targets, params)
     total, data, reg, _, _ = _energy(current, corr, state[3], params)
     energies.append(total)
-    return current, NonRigidResult(steps, total, data, reg, len(corr.index), tuple(energies), converged)
+    support = np.bincount(knn[corr.index].ravel(), weights[corr.index].ravel(), minlength=current.num_nodes)
+    return current, NonRigidResult(steps, total, data, reg, len(corr.index), tuple(energies), converged, support)

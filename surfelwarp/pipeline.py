@@ -82,11 +82,18 @@ class SurfelWarpMethod:
         p, timer, now = self.params, StageTimer(), obs.time
         m = self.model
 
-        # Solver maps: the drawn surfels (all of a template; else stable or recent) at the previous pose.
-        drawn = None if not self.fusion else np.flatnonzero(
-            (m.confidence >= p.fusion.stable_confidence) | (now - m.t_observed <= p.recent_frames))
+        # Solver maps: the drawn surfels (all of a template; else stable, and recent ones where
+        # no stable surfel is drawn) at the previous pose.
+        drawn = fill = None
+        if self.fusion:
+            stable = m.confidence >= p.fusion.stable_confidence
+            recent = now - m.t_observed <= p.recent_frames
+            if p.recent_draw == "fill":
+                drawn, fill = np.flatnonzero(stable), np.flatnonzero(recent & ~stable)
+            else:
+                drawn = np.flatnonzero(stable | recent)
         maps = render_solver_maps(*transform_surfels(invert(self.T_camera_to_world), m.live_position, m.live_normal),
-                                  m.radius, self.intrinsics, indices=drawn)
+                                  m.radius, self.intrinsics, indices=drawn, fill_indices=fill)
         timer.lap("solver_maps")
 
         # Rigid alignment of the observation to the rendered model.
@@ -97,7 +104,7 @@ class SurfelWarpMethod:
         visible = np.unique(maps.index[maps.index >= 0])
         surfels = SurfelSet(m.ref_position[visible], m.ref_normal[visible], m.knn[visible], m.weights[visible])
         field, nonrigid = self.tracker.nonrigid(self.field, surfels, obs)
-        self.field = self.tracker.factor(field)
+        self.field = self.tracker.factor(field, nonrigid)
         timer.lap("nonrigid")
 
         # Forward warp of the whole reference model: S_live = W(S_ref) (Eq. 2).

@@ -28,6 +28,8 @@ class TrackingParams:
     # 1.9 mm mean EPE over 90 frames without).
     predict_motion: bool = False
     factor_rigid_motion: bool = True   # move the warp field's common rigid motion into the pose
+    factor_by_support: bool = True     # that motion fitted to the nodes the depth constrains,
+                                       # weighted by their pairs' skinning (False: every node alike)
 
 
 @dataclass(frozen=True)
@@ -39,14 +41,18 @@ class SurfelSet:
     weights: np.ndarray
 
 
-def factor_rigid_motion(field: WarpField) -> tuple[WarpField, np.ndarray]:
-    """Split W = A o W' with A the rigid motion best fitting the nodes' displacements.
+def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None) -> tuple[WarpField, np.ndarray]:
+    """Split W = A o W' with A the rigid motion best fitting the nodes' displacements
+    (weighted by node_weights, if given).
 
     DQB commutes with a common left factor, so W' = A^-1 o W exactly. Without this, rigid
     tracking error that the non-rigid solve absorbs would stay in the warp field forever and
-    the camera pose would drift from the composite motion that is actually tracked.
+    the camera pose would drift from the composite motion that is actually tracked. Weighting
+    by data support matters when most nodes are out of view (a room): fitted to every node, A
+    takes only part of the visible nodes' common motion, the rest stays in their transforms,
+    and rigid ICP then follows the drifted visible model frame after frame.
     """
-    A = fit_rigid(field.nodes, field.live_nodes())
+    A = fit_rigid(field.nodes, field.live_nodes(), node_weights)
     G = invert(A) @ field.global_transforms()
     return field.with_transforms(to_local(G, field.nodes)), A
 
@@ -86,10 +92,17 @@ class Tracker:
                 solved, result, self.T_camera_to_world = solved2, result2, self._T_guess
         return solved, result
 
-    def factor(self, field: WarpField) -> WarpField:
-        """Move the field's common rigid motion into the pose (if enabled); ends the frame."""
-        if self.params.factor_rigid_motion:
-            field, A = factor_rigid_motion(field)
+    def factor(self, field: WarpField, result: NonRigidResult | None = None) -> WarpField:
+        """Move the field's common rigid motion into the pose (if enabled); ends the frame.
+        `result` (the solve's) gives the node support the motion is fitted to."""
+        p = self.params
+        if p.factor_rigid_motion:
+            support = None
+            if p.factor_by_support and result is not None and result.node_support is not None:
+                support = result.node_support[:field.num_nodes]
+                # a Kabsch fit needs three nodes not on a line; fewer supported: every node alike
+                support = support if np.count_nonzero(support) >= 3 else None
+            field, A = factor_rigid_motion(field, support)
             self.T_camera_to_world = invert(A) @ self.T_camera_to_world
         self._camera_velocity = invert(self._T_previous) @ self.T_camera_to_world
         return field

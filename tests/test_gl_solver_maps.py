@@ -115,6 +115,25 @@ def test_selected_surfels_keep_full_array_indices():
     assert (render_solver_maps(p, n, r, K, indices=np.array([], int)).index == -1).all()
 
 
+def test_fill_surfels_show_only_where_the_first_set_leaves_pixels_empty():
+    p, n, r = scene(seed=5)
+    first = np.flatnonzero(np.arange(len(p)) % 2 == 0)
+    fill = np.flatnonzero(np.arange(len(p)) % 2 == 1)
+    maps = render_solver_maps(p, n, r, K, indices=first, fill_indices=fill)
+    ref_first, unsure_first, _ = reference(p[first], n[first], r[first], K)
+    ref_fill, unsure_fill, _ = reference(p[fill], n[fill], r[fill], K)
+    ref = np.where(ref_first >= 0, first[np.maximum(ref_first, 0)],
+                   np.where(ref_fill >= 0, fill[np.maximum(ref_fill, 0)], -1))
+    checked = (ref >= 0) & ~unsure_first & ~(unsure_fill & (ref_first < 0))
+    assert (maps.index == ref)[checked].mean() >= 0.99
+    # The fill set would win the depth test on many of the first set's pixels, and does not.
+    both = render_solver_maps(p, n, r, K, indices=np.concatenate([first, fill]))
+    occluded = (ref_first >= 0) & np.isin(both.index, fill) & ~unsure_first
+    assert occluded.sum() > 500
+    assert np.isin(maps.index[occluded], first).all()
+    assert np.isin(maps.index[(ref_first < 0) & (ref_fill >= 0) & ~unsure_fill], fill).mean() >= 0.99
+
+
 @pytest.mark.parametrize("centre_uv", [(159.5, 119.5), (60.0, 200.0)])
 def test_fronto_parallel_disk_area(centre_uv):
     z, radius = 1.3, 0.06

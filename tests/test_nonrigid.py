@@ -6,7 +6,8 @@ import pytest
 
 from surfelwarp.camera import Intrinsics
 from surfelwarp.nonrigid import (NonRigidParams, _robust, apply_update, associate, data_jacobian, data_residuals,
-                                 normal_equations, reg_jacobian, reg_residuals, solve_nonrigid, solve_step)
+                                 free_nodes, normal_equations, reg_jacobian, reg_residuals, restrict,
+                                 solve_nonrigid, solve_step)
 from surfelwarp.observation import normal_map, preprocess
 from surfelwarp.se3 import invert, se3_exp
 from surfelwarp.warp_field import WarpField, WarpFieldParams, skin, warp
@@ -421,3 +422,53 @@ def test_pcg_solve_matches_the_direct_solve_and_falls_back(problem):
 def test_rejects_unknown_linear_solver(problem):
     with pytest.raises(ValueError):
         problem.solve(NonRigidParams(linear_solver="cholesky"))
+
+
+def test_free_nodes_grow_by_graph_rings_in_both_directions():
+    graph = np.minimum(np.arange(10) + 1, 9)[:, None]      # a chain: node j lists j + 1 only
+    ring = lambda *seeds: np.flatnonzero(free_nodes(graph, np.isin(np.arange(10), seeds), 2)).tolist()
+    assert ring(0) == [0, 1, 2]           # along the edges
+    assert ring(9) == [7, 8, 9]           # against them
+    assert ring(4, 5) == [2, 3, 4, 5, 6, 7]
+    assert np.flatnonzero(free_nodes(graph, np.arange(10) == 3, 0)).tolist() == [3]
+
+
+def test_restricted_system_is_the_kept_block(problem):
+    rng = np.random.default_rng(3)
+    field = random_field(problem, 0.1)
+    idx = rng.choice(len(problem.points), 5000, replace=False)
+    p, knn, w = problem.points[idx].astype(np.float64), problem.knn[idx], problem.weights[idx].astype(np.float64)
+    n = problem.normals[idx].astype(np.float64)
+    r = data_residuals(field, p, knn, w, problem.truth[idx], n)
+    H, g = normal_equations(field, data_jacobian(field, p, knn, w, n), knn, r, np.ones_like(r), 5.0)
+    m = field.num_nodes
+    keep = rng.random(m) < 0.6
+    dense = H.toarray()
+    diag = np.stack([dense[6 * j:6 * j + 6, 6 * j:6 * j + 6] for j in range(m)])
+    Hk, gk, dk = restrict(H, g, diag, keep)
+    dofs = (6 * np.flatnonzero(keep)[:, None] + np.arange(6)).reshape(-1)
+    np.testing.assert_array_equal(Hk.toarray(), dense[np.ix_(dofs, dofs)])
+    np.testing.assert_array_equal(gk, g[dofs])
+    np.testing.assert_array_equal(dk, diag[keep])
+
+
+def test_nodes_far_from_the_view_stay_fixed(problem):
+    """Only the left third of the surface is solved: with free_rings=1 the nodes more than one
+    graph edge from its nodes keep their transforms, the left third still fits, and with every
+    node free the far ones do move (pulled by the regulariser)."""
+    left = np.flatnonzero(problem.points[:, 0] < problem.points[:, 0].min() + 0.2)
+    def solve(rings):
+        return solve_nonrigid(problem.field, problem.points[left], problem.normals[left], problem.knn[left],
+                              problem.weights[left], *problem.maps, INTR, T_CW, NonRigidParams(free_rings=rings))
+    in_view = np.zeros(problem.field.num_nodes, bool)
+    in_view[problem.knn[left].reshape(-1)] = True
+    far = ~free_nodes(problem.field.graph, in_view, 1)
+    assert far.sum() > 0.3 * len(far)
+    held, res = solve(1)
+    assert res.converged
+    np.testing.assert_array_equal(held.transforms[far], problem.field.transforms[far])
+    assert not np.allclose(held.transforms[~far], problem.field.transforms[~far])
+    assert problem.error(held)[left].mean() < 0.003
+    loose, _ = solve(None)
+    moved = np.linalg.norm(loose.transforms[far, :3, 3] - problem.field.transforms[far, :3, 3], axis=1)
+    assert moved.max() > 1e-3

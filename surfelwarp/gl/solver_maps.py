@@ -64,13 +64,13 @@ class _Renderer:
             self.vao_key = key
         return self.vao
 
-    def render(self, positions, normals, radii, elements, intr: Intrinsics, near: float, far: float):
+    def render(self, positions, normals, radii, elements, fill_elements, intr: Intrinsics, near: float, far: float):
         width, height = intr.width, intr.height
         fb_size = (width + 2 * MARGIN_PX, height + 2 * MARGIN_PX)
         self.buffers["position"].upload(positions)
         self.buffers["normal"].upload(normals)
         self.buffers["radius"].upload(radii)
-        self.buffers["element"].upload(elements)
+        self.buffers["element"].upload(np.concatenate([elements, fill_elements]))
         if fb_size not in self.targets:
             self.targets[fb_size] = _Targets(self.ctx, *fb_size)
         fbo = self.targets[fb_size].fbo
@@ -87,8 +87,14 @@ class _Renderer:
         prog["u_near_far"].value = (near, far)
         prog["u_max_size"].value = self.max_point_size
         prog["u_min_cos"].value = MIN_COS
-        if len(elements):
-            self._vertex_array().render(moderngl.POINTS, vertices=len(elements))
+        # The fill surfels draw behind every depth of the first set: they show only where it left
+        # the pixel empty.
+        layers = ((0, len(elements), (0.0, 1.0)),) if not len(fill_elements) else \
+            ((0, len(elements), (0.0, 0.5)), (len(elements), len(fill_elements), (0.5, 0.5)))
+        for first, count, layer in layers:
+            if count:
+                prog["u_depth_layer"].value = layer
+                self._vertex_array().render(moderngl.POINTS, vertices=count, first=first)
         origin = (MARGIN_PX, MARGIN_PX)
         index = read_attachment(fbo, 0, 1, "i4", height, width, origin)
         index -= 1
@@ -107,12 +113,23 @@ def _renderer() -> _Renderer:
     return _renderers[id(ctx)]
 
 
+def _elements(indices: np.ndarray, n: int) -> np.ndarray:
+    elements = np.asarray(indices).reshape(-1)
+    if elements.dtype == bool:
+        raise ValueError("indices must be integer indices, not a mask")
+    if len(elements) and (elements.min() < 0 or elements.max() >= n):
+        raise ValueError("indices out of range")
+    return elements.astype(np.uint32)
+
+
 def render_solver_maps(positions: np.ndarray, normals: np.ndarray, radii: np.ndarray,
                        intrinsics: Intrinsics, indices: np.ndarray | None = None,
-                       near_m: float = NEAR_M, far_m: float = FAR_M) -> SolverMaps:
+                       near_m: float = NEAR_M, far_m: float = FAR_M,
+                       fill_indices: np.ndarray | None = None) -> SolverMaps:
     """Render (N, 3) camera-frame surfels (normals, (N,) radii in metres) as opaque disks.
 
     `indices` selects the surfels drawn (e.g. the stable ones); maps still hold full-array indices.
+    `fill_indices` are drawn only on the pixels the first set leaves empty.
     Disks reaching outside (near_m, far_m) in depth are dropped; a disk whose projection is wider
     than the driver's largest point size (255 px on llvmpipe) is cut to that square.
     """
@@ -124,15 +141,8 @@ def render_solver_maps(positions: np.ndarray, normals: np.ndarray, radii: np.nda
     n = len(positions)
     if len(normals) != n or len(radii) != n:
         raise ValueError("positions, normals and radii differ in length")
-    if indices is None:
-        elements = np.arange(n, dtype=np.uint32)
-    else:
-        elements = np.asarray(indices).reshape(-1)
-        if elements.dtype == bool:
-            raise ValueError("indices must be integer indices, not a mask")
-        if len(elements) and (elements.min() < 0 or elements.max() >= n):
-            raise ValueError("indices out of range")
-        elements = elements.astype(np.uint32)
-    index, vertex, normal = _renderer().render(positions, normals, radii, elements, intrinsics,
+    elements = np.arange(n, dtype=np.uint32) if indices is None else _elements(indices, n)
+    fill = np.zeros(0, np.uint32) if fill_indices is None else _elements(fill_indices, n)
+    index, vertex, normal = _renderer().render(positions, normals, radii, elements, fill, intrinsics,
                                                near_m, far_m)
     return SolverMaps(index=index, vertex=vertex, normal=normal, intrinsics=intrinsics)
