@@ -736,7 +736,9 @@ def spec_from_args(args: argparse.Namespace) -> CompareSpec:
         params = replace(params, clip_far_m=args.clip_far)
     if not 0 <= params.clip_near_m < params.clip_far_m:
         raise InputError(None, f"--clip-near {params.clip_near_m} must be >= 0 and below --clip-far {params.clip_far_m}")
-    df = DynamicFusionParams(hierarchical_graph=args.hierarchical)
+    df = DynamicFusionParams()
+    if args.hierarchical:
+        df = replace(df, tracking=replace(df.tracking, hierarchy=replace(df.tracking.hierarchy, enabled=True)))
     if args.voxel_size is not None:
         if not args.voxel_size > 0:
             raise InputError(None, f"--voxel-size must be positive, got {args.voxel_size}")

@@ -144,6 +144,8 @@ def check(params: SurfelWarpParams, path=None) -> SurfelWarpParams:
         "warp_field.node_radius_m": params.warp_field.node_radius_m <= 0,
         "warp_field.k_skin": params.warp_field.k_skin < 1,
         "warp_field.graph_k": params.warp_field.graph_k < 1,
+        "tracking.hierarchy.levels": params.tracking.hierarchy.levels < 1,
+        "tracking.hierarchy.k": params.tracking.hierarchy.k < 1,
         "fusion.window": params.fusion.window < 1,
         "index_map_supersample": params.index_map_supersample < 1,
     }

@@ -15,8 +15,8 @@ bit-identical to warping all of them (tests check it).
 The mesh extracted after fusion serves three uses: this frame's output (warped by W_t), the
 nodes' coverage test, and the next frame's data term (DynamicFusion Sec. 3.3.1 extracts it
 before the solve; it is the same mesh, so it is extracted once).
-Optionally the regulariser uses DynamicFusion's hierarchical deformation tree (Sec. 3.3.2/3.4)
-instead of the k-nearest-node graph.
+The regulariser can use DynamicFusion's hierarchical deformation tree (tracking.hierarchy,
+hierarchy.py), as the shared tracker can for SurfelWarp.
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from .camera import Intrinsics
-from .dual_quaternion import apply_components, dq_to_transform
+from .dual_quaternion import apply_components
 from .gl.mesh_maps import render_mesh_maps
 from .observation import CameraObservation
 from .outputs import FrameRecord
@@ -36,8 +36,7 @@ from .se3 import invert
 from .timing import StageTimer
 from .tracking import SurfelSet, Tracker, TrackingParams
 from .tsdf import TSDFParams, TSDFVolume, extract_mesh, fuse, node_distance_weight
-from .warp_field import (WarpField, WarpFieldParams, blend, extend, inverse_warp, sample_nodes, skin, to_local,
-                         update_skinning, warp)
+from .warp_field import WarpField, WarpFieldParams, extend, inverse_warp, skin, update_skinning, warp
 
 
 @dataclass(frozen=True)
@@ -46,10 +45,6 @@ class DynamicFusionParams:
     # node_radius_m is DynamicFusion's decimation density epsilon (25 mm, Sec. 4).
     warp_field: WarpFieldParams = field(default_factory=WarpFieldParams)
     tracking: TrackingParams = field(default_factory=TrackingParams)   # the same tracker as SurfelWarp
-    hierarchical_graph: bool = False  # regularise through the deformation tree (Sec. 3.3.2)
-    hierarchy_levels: int = 4         # L, counting the warp nodes as level 0 (Sec. 4)
-    hierarchy_beta: float = 4.0       # level l is decimated at epsilon * beta^l
-    hierarchy_k: int = 4              # edges from each node to its k nearest of the next level
     min_first_points: int = 500       # the model starts at the first frame with this many valid pixels
     voxel_chunk: int = 1 << 18        # voxels per warp / skinning batch (bounds temporaries)
     # Warp and fuse only blocks of voxels that can be fused this frame (fusible_blocks): the
@@ -60,52 +55,6 @@ class DynamicFusionParams:
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-
-# ---------------------------------------------------------------- deformation tree
-
-@dataclass(frozen=True)
-class Hierarchy:
-    """Regularisation nodes above the warp nodes: levels[l] = global indices of level l's nodes
-    in `nodes` (level 0 = the warp nodes, first). Each node of level l links to its k nearest
-    nodes of level l+1 (siblings are not linked); `graph` stores every link at its coarse end,
-    as solve_nonrigid's graph expects: row j lists the finer nodes i linked to j, so the edge's
-    residual is T_i p_j - T_j p_j, DynamicFusion Eq. 8 with j in E(i). Unused slots hold j."""
-    nodes: np.ndarray       # (M_total, 3) float32
-    graph: np.ndarray       # (M_total, max in-degree) int32
-    levels: tuple[np.ndarray, ...]
-
-    @property
-    def num_warp_nodes(self) -> int:
-        return len(self.levels[0])
-
-
-def build_hierarchy(warp_nodes: np.ndarray, epsilon_m: float, levels: int, beta: float, k: int) -> Hierarchy:
-    """DynamicFusion Sec. 3.4: level l subsamples level l-1 at radius epsilon * beta^l (stopping
-    early once a level has a single node); each node links to its k nearest nodes of level l+1."""
-    layers = [np.asarray(warp_nodes, np.float32).reshape(-1, 3)]
-    for level in range(1, levels):
-        if len(layers[-1]) <= 1:
-            break
-        layers.append(sample_nodes(layers[-1], epsilon_m * beta ** level))
-    nodes = np.concatenate(layers)
-    starts = np.cumsum([0] + [len(a) for a in layers])
-    fine, coarse = [], []
-    for level in range(len(layers) - 1):
-        j = min(k, len(layers[level + 1]))
-        _, idx = KDTree(layers[level + 1]).query(layers[level], k=j)
-        fine.append(np.repeat(np.arange(starts[level], starts[level + 1]), j))
-        coarse.append(idx.reshape(-1).astype(np.int64) + starts[level + 1])
-    fine = np.concatenate(fine) if fine else np.zeros(0, np.int64)
-    coarse = np.concatenate(coarse) if coarse else np.zeros(0, np.int64)
-    # Links grouped by their coarse end; each gets a slot number within its group.
-    order = np.argsort(coarse, kind="stable")
-    fine, coarse = fine[order], coarse[order]
-    degree = np.bincount(coarse, minlength=len(nodes))
-    slot = np.arange(len(coarse)) - np.repeat(np.cumsum(degree) - degree, degree)
-    graph = np.repeat(np.arange(len(nodes), dtype=np.int32)[:, None], max(int(degree.max(initial=0)), 1), axis=1)
-    graph[coarse, slot] = fine
-    return Hierarchy(nodes, graph, tuple(np.arange(starts[i], starts[i + 1]) for i in range(len(layers))))
 
 
 def warp_points_fast(points: np.ndarray, knn: np.ndarray, weights: np.ndarray, field: WarpField,
@@ -242,21 +191,6 @@ def block_voxels(blocks: VoxelBlocks, keep: np.ndarray, dims: tuple[int, int, in
     return np.flatnonzero(grid[:dims[0], :dims[1], :dims[2]])
 
 
-def warp_transforms_at(field: WarpField, points: np.ndarray) -> np.ndarray:
-    """(n, 4, 4) node-local transforms at `points` equal to the current warp there (DQB)."""
-    knn, w = skin(points, field.nodes, field.params.k_skin, field.sigma_m)
-    return to_local(dq_to_transform(blend(knn, w, field)), points)
-
-
-def with_hierarchy(field: WarpField, tree: Hierarchy) -> WarpField:
-    """The warp field plus the regularisation nodes (transforms from the current warp) and the
-    tree's edges: solve_nonrigid optimises them all, the data term only touches level 0."""
-    extra = tree.nodes[tree.num_warp_nodes:]
-    transforms = np.concatenate([field.transforms, warp_transforms_at(field, extra)]) if len(extra) \
-        else field.transforms
-    return WarpField(tree.nodes, transforms, tree.graph, field.params)
-
-
 # ---------------------------------------------------------------- the method
 
 @dataclass
@@ -283,7 +217,6 @@ class DynamicFusionMethod:
         self.volume: TSDFVolume | None = None
         self.field: WarpField | None = None
         self.mesh: CanonicalMesh | None = None
-        self.tree: Hierarchy | None = None
         self.voxel_knn = self.voxel_weights = self.voxel_fusion_weight = None
         self.voxel_centres: np.ndarray | None = None   # (V, 3) float32, cached: the grid never moves
         self.blocks: VoxelBlocks | None = None
@@ -316,10 +249,8 @@ class DynamicFusionMethod:
 
         surfels = self.predicted_points(maps, T_rendered)
         timer.lap("predict")
-        solve_field = self.field if self.tree is None else with_hierarchy(self.field, self.tree)
-        solved, nonrigid = self.tracker.nonrigid(solve_field, surfels, obs)
-        # The deformation tree's upper levels only regularise; the warp nodes are the first ones.
-        self.field = self.tracker.factor(self.field.with_transforms(solved.transforms[:self.field.num_nodes]), nonrigid)
+        solved, nonrigid = self.tracker.nonrigid(self.field, surfels, obs)
+        self.field = self.tracker.factor(solved, nonrigid)
         timer.lap("nonrigid")
 
         depth = self._depth(obs)
@@ -368,7 +299,6 @@ class DynamicFusionMethod:
                 self.field = WarpField.from_points(vertices, p.warp_field)
                 self.voxel_knn, self.voxel_weights = self._skin_voxels()
                 self._update_fusion_weights()
-                self._update_tree()
                 self._update_blocks()
                 self._set_mesh(vertices, normals, faces)
                 self.reference_frame = obs.frame_index
@@ -445,7 +375,6 @@ class DynamicFusionMethod:
                 self.voxel_knn[g], self.voxel_weights[g], centres, field, first_new)
             self.voxel_fusion_weight[g] = node_distance_weight(
                 centres, field.nodes, self.voxel_knn[g], self.params.warp_field.node_radius_m)
-        self._update_tree()
         self._update_blocks()
 
     def _update_fusion_weights(self) -> None:
@@ -455,12 +384,6 @@ class DynamicFusionMethod:
             w[start:stop] = node_distance_weight(centres, self.field.nodes, self.voxel_knn[start:stop],
                                                  self.params.warp_field.node_radius_m)
         self.voxel_fusion_weight = w
-
-    def _update_tree(self) -> None:
-        p = self.params
-        if p.hierarchical_graph:
-            self.tree = build_hierarchy(self.field.nodes, p.warp_field.node_radius_m, p.hierarchy_levels,
-                                        p.hierarchy_beta, p.hierarchy_k)
 
     def fusible_voxels(self, depth_m: np.ndarray) -> np.ndarray | None:
         """Flat indices of the voxels that Eq. 4 may fuse this frame (None: all of them, when

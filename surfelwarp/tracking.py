@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .camera import Intrinsics
+from .hierarchy import Hierarchy, HierarchyParams, build_hierarchy, with_hierarchy
 from .nonrigid import NonRigidParams, NonRigidResult, solve_nonrigid
 from .observation import CameraObservation
 from .rigid_icp import RigidParams, RigidResult, rigid_icp
@@ -30,6 +31,9 @@ class TrackingParams:
     factor_rigid_motion: bool = True   # move the warp field's common rigid motion into the pose
     factor_by_support: bool = True     # that motion fitted to the nodes the depth constrains,
                                        # weighted by their pairs' skinning (False: every node alike)
+    # DynamicFusion's deformation tree as the regulariser (hierarchy.py); off: the k-nearest-node
+    # graph of SurfelWarp Eq. 8.
+    hierarchy: HierarchyParams = field(default_factory=HierarchyParams)
 
 
 @dataclass(frozen=True)
@@ -64,6 +68,8 @@ class Tracker:
         self.intrinsics, self.params = intrinsics, params
         self.T_camera_to_world = np.eye(4)
         self._camera_velocity = np.eye(4)     # previous frame's camera motion, T_prev^-1 T_now
+        self.tree: Hierarchy | None = None    # the deformation tree of the last solve, if enabled
+        self._tree_nodes: np.ndarray | None = None
 
     def rigid(self, model_vertex: np.ndarray, model_normal: np.ndarray, obs: CameraObservation) -> RigidResult:
         """Rigid ICP of the observation to world-frame model maps drawn at the current pose;
@@ -83,14 +89,24 @@ class Tracker:
         field (not yet factored)."""
         depth = (obs.vertex_map, obs.normal_map, obs.valid, self.intrinsics)
         model = (surfels.positions, surfels.normals, surfels.knn, surfels.weights)
-        solved, result = solve_nonrigid(field, *model, *depth, self.T_camera_to_world, self.params.nonrigid)
+        solve_field = field if not self.params.hierarchy.enabled else with_hierarchy(field, self._hierarchy(field))
+        solved, result = solve_nonrigid(solve_field, *model, *depth, self.T_camera_to_world, self.params.nonrigid)
         if not result.converged and not np.array_equal(self.T_camera_to_world, self._T_guess):
             # Rigid ICP can mistake deformation for camera motion: try the solve from the
             # starting pose too and keep the better fit (with about as many pairs).
-            solved2, result2 = solve_nonrigid(field, *model, *depth, self._T_guess, self.params.nonrigid)
+            solved2, result2 = solve_nonrigid(solve_field, *model, *depth, self._T_guess, self.params.nonrigid)
             if result2.energy < result.energy and result2.correspondences >= 0.9 * result.correspondences:
                 solved, result, self.T_camera_to_world = solved2, result2, self._T_guess
-        return solved, result
+        # The tree's upper levels only regularise; the warp nodes come first.
+        return field.with_transforms(solved.transforms[:field.num_nodes]), result
+
+    def _hierarchy(self, field: WarpField) -> Hierarchy:
+        """The deformation tree over the field's nodes, rebuilt when they change."""
+        if self._tree_nodes is not field.nodes:
+            h = self.params.hierarchy
+            self.tree = build_hierarchy(field.nodes, field.params.node_radius_m, h.levels, h.beta, h.k)
+            self._tree_nodes = field.nodes
+        return self.tree
 
     def factor(self, field: WarpField, result: NonRigidResult | None = None) -> WarpField:
         """Move the field's common rigid motion into the pose (if enabled); ends the frame.

@@ -100,7 +100,7 @@ def test_arguments_and_bad_input(tmp_path):
     assert spec.surfelwarp_warp_field.graph_k == spec.dynamicfusion.warp_field.graph_k == 4
     assert spec.max_frames == 3 and spec.preprocess.clip_far_m == 2.0 and args.render_frames == [1, 2]
     assert spec.dynamicfusion.tsdf.voxel_size_m == 0.01 and spec.dynamicfusion.tsdf.truncation_m == pytest.approx(0.03)
-    assert spec.dynamicfusion.hierarchical_graph
+    assert spec.dynamicfusion.tracking.hierarchy.enabled
     with pytest.raises(InputError, match="does not exist"):
         compare(spec)
     assert not (tmp_path / "o").exists()

@@ -10,9 +10,9 @@ from pykdtree.kdtree import KDTree
 from surfelwarp.data_tools import synth
 from surfelwarp.data_tools.evaluate import evaluate
 from surfelwarp.data_tools.geometry import TriangleMesh
-from surfelwarp.dynamicfusion import (DynamicFusionMethod, DynamicFusionParams, block_voxels, build_hierarchy,
-                                      fusible_blocks, voxel_blocks, warp_points_fast, warp_transforms_at,
-                                      with_hierarchy)
+from surfelwarp.dynamicfusion import (DynamicFusionMethod, DynamicFusionParams, block_voxels, fusible_blocks,
+                                      voxel_blocks, warp_points_fast)
+from surfelwarp.hierarchy import HierarchyParams
 from surfelwarp.camera import Intrinsics
 from surfelwarp.gl.mesh_maps import render_mesh_maps
 from surfelwarp.observation import preprocess
@@ -104,62 +104,13 @@ def test_orbit_fuses_a_static_scene_seen_by_a_moving_camera(tmp_path):
     np.testing.assert_allclose(method.voxel_fusion_weight[same], fresh[same], atol=1e-5)
 
 
-def test_hierarchy_links_each_level_to_its_nearest_coarser_nodes():
-    rng = np.random.default_rng(3)
-    points = rng.uniform(-0.25, 0.25, (4000, 3)) * [1, 1, 0.2]
-    nodes = WarpField.from_points(points).nodes
-    eps, beta, k = 0.025, 2.0, 3
-    tree = build_hierarchy(nodes, eps, levels=4, beta=beta, k=k)
-    assert len(tree.levels) == 4 and np.array_equal(tree.levels[0], np.arange(len(nodes)))
-    assert np.array_equal(tree.nodes[:len(nodes)], nodes)
-    sizes = [len(level) for level in tree.levels]
-    assert sizes == sorted(sizes, reverse=True) and sizes[-1] >= 1
-    # Edges as (fine, coarse) pairs, read back from the graph rows (stored at the coarse end).
-    j = np.repeat(np.arange(len(tree.nodes)), tree.graph.shape[1])
-    i = tree.graph.reshape(-1)
-    real = i != j
-    edges = set(zip(i[real].tolist(), j[real].tolist()))
-    for level in range(1, 4):
-        coarse = tree.nodes[tree.levels[level]]
-        gaps = np.linalg.norm(coarse[:, None] - coarse[None], axis=-1) + np.eye(len(coarse))
-        assert gaps.min() >= eps * beta ** level * (1 - 1e-6)
-        fine = tree.levels[level - 1]
-        _, nearest = KDTree(coarse).query(tree.nodes[fine], k=min(k, len(coarse)))
-        expected = {(int(f), int(tree.levels[level][c])) for f, row in zip(fine, nearest.reshape(len(fine), -1))
-                    for c in row}
-        assert expected <= edges
-    assert len(edges) == sum(sizes[l] * min(k, sizes[l + 1]) for l in range(3))   # no sibling edges
-
-
-def test_hierarchy_field_starts_at_the_current_warp():
-    rng = np.random.default_rng(4)
-    nodes = WarpField.from_points(rng.uniform(-0.2, 0.2, (3000, 3)) * [1, 1, 0.3]).nodes
-    field = WarpField.identity(nodes)
-    # A smooth bend: rotation about y growing with x.
-    from surfelwarp.se3 import se3_exp
-    xi = np.zeros((len(nodes), 6))
-    xi[:, 1] = 2.0 * nodes[:, 0]
-    xi[:, 5] = 0.1 * nodes[:, 0] ** 2
-    field = field.with_transforms(se3_exp(xi))
-    tree = build_hierarchy(nodes, 0.025, 4, 4.0, 4)
-    full = with_hierarchy(field, tree)
-    assert np.array_equal(full.transforms[:len(nodes)], field.transforms)
-    extra = tree.nodes[len(nodes):]
-    # Each regularisation node moves its own position where the warp field moves it.
-    moved = full.live_nodes()[len(nodes):]
-    knn, w = skin(extra, nodes, 4, field.sigma_m)
-    expected, _ = warp(extra.astype(np.float64), None, knn, w, field)
-    np.testing.assert_allclose(moved, expected, atol=1e-9)
-    np.testing.assert_allclose(warp_transforms_at(field, nodes[:5])[:, :3, 3] + nodes[:5],
-                               warp(nodes[:5].astype(np.float64), None, *skin(nodes[:5], nodes, 4, field.sigma_m),
-                                    field)[0], atol=1e-9)
-
-
 def test_hierarchical_regulariser_tracks_the_sheet(sheet, tmp_path):
-    params = replace(FAST, hierarchical_graph=True)
+    params = replace(FAST, tracking=replace(FAST.tracking, hierarchy=HierarchyParams(enabled=True)))
     method, metrics = run_df(sheet, tmp_path / "dfh", params, frames=5, save_every=4)
-    assert method.tree is not None and method.tree.num_warp_nodes == method.field.num_nodes
-    assert len(method.tree.levels) >= 3
+    tree = method.tracker.tree          # built for the last solve; extension appends nodes after it
+    n = tree.num_warp_nodes
+    assert 0 < n <= method.field.num_nodes and np.array_equal(tree.nodes[:n], method.field.nodes[:n])
+    assert len(tree.levels) >= 3
     result = evaluate(tmp_path / "dfh", sheet)
     for row in result["frames"]:
         assert row["accuracy_median_mm"] < 1.5 and row["completeness_10mm_pct"] > 95, row
