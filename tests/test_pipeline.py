@@ -97,7 +97,8 @@ def test_release_reinitialises_and_drops_what_depth_contradicts(release, tmp_pat
 def test_config_file_overrides_and_is_recorded(release, tmp_path):
     seq, _ = release
     cfg = tmp_path / "params.toml"
-    cfg.write_text("[fusion]\ndistance_threshold_m = 0.005\n[tracking.nonrigid]\nlambda_reg = 8\n")
+    cfg.write_text("recent_draw = 'with'\n[fusion]\ndistance_threshold_m = 0.005\n[tracking.nonrigid]\nlambda_reg = 8\n"
+                   "[tracking.hierarchy]\nenabled = true\n")
     params = load_params(cfg)
     assert params.fusion.distance_threshold_m == 0.005 and params.tracking.nonrigid.lambda_reg == 8.0
     assert params.fusion.normal_threshold == SurfelWarpParams().fusion.normal_threshold
@@ -105,6 +106,8 @@ def test_config_file_overrides_and_is_recorded(release, tmp_path):
     method = metrics["config"]["method"]
     assert method["fusion"]["distance_threshold_m"] == 0.005 and method["tracking"]["nonrigid"]["lambda_reg"] == 8.0
     assert method["fusion_enabled"] is True
+    assert method["recent_draw"] == "with" and method["tracking"]["hierarchy"]["enabled"] is True
+    assert all(f["gauss_newton_iterations"] >= 1 for f in metrics["frames"][1:])
 
 
 @pytest.mark.parametrize("text, fragment", [
@@ -113,6 +116,8 @@ def test_config_file_overrides_and_is_recorded(release, tmp_path):
     ('{"tracking": {"nonrigid": {"robust": "cauchy"}}}', "expected one of"),
     ('{"fusion": 3}', "expected a table"),
     ('{"fusion": {"window": 0}}', "out of range"),
+    ('{"recent_draw": "sometimes"}', "expected one of"),
+    ('{"tracking": {"hierarchy": {"levels": 0}}}', "out of range"),
     ("{not json", "does not parse"),
 ])
 def test_bad_config_is_one_clear_error(tmp_path, text, fragment):
