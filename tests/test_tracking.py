@@ -1,13 +1,18 @@
-"""Template tracking (`--no-fusion`) end to end: synthetic scenes scored with `surfelwarp eval`.
+"""Template tracking (`--no-fusion`) end to end: synthetic scenes scored with `surfelwarp eval`;
+and how the tracker moves the warp field's common motion into the pose.
 
 Reduced size (320x240) and length keep this quick; the full-size figures are in the README.
 """
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from surfelwarp.cli import main
 from surfelwarp.data_tools import evaluate, synth
+from surfelwarp.se3 import se3_exp
+from surfelwarp.tracking import factor_rigid_motion
+from surfelwarp.warp_field import WarpField, to_local
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -57,3 +62,23 @@ def test_deepdeform_shirt_large_motion(tmp_path):
     row = evaluate.evaluate(out, data)["frames"][0]
     assert row["points"] > 30000
     assert row["epe_mean_mm"] < 0.95 * row["zero_motion_epe_mm"]
+
+
+def test_factoring_fits_the_common_motion_to_the_supported_nodes():
+    """Half the nodes (the ones the depth sees) moved rigidly by A, the others did not: weighted by
+    support the factored motion is A and the seen nodes end at rest; over every node alike it is
+    a partial motion that leaves part of A in the seen nodes."""
+    rng = np.random.default_rng(2)
+    nodes = WarpField.from_points(rng.uniform(-0.5, 0.5, (5000, 3)) * [1, 1, 0.3]).nodes
+    seen = nodes[:, 0] < 0
+    A = se3_exp(np.array([0.02, -0.03, 0.01, 0.01, 0.004, -0.006]))
+    G = np.tile(np.eye(4), (len(nodes), 1, 1))
+    G[seen] = A
+    field = WarpField.identity(nodes).with_transforms(to_local(G, nodes))
+    support = np.where(seen, rng.uniform(0.5, 2.0, len(nodes)), 0.0)
+    rest, B = factor_rigid_motion(field, support)
+    np.testing.assert_allclose(B, A, atol=1e-9)
+    np.testing.assert_allclose(rest.live_nodes()[seen], nodes[seen], atol=1e-6)
+    partial, _ = factor_rigid_motion(field)
+    left = np.linalg.norm(partial.live_nodes()[seen] - nodes[seen], axis=1)
+    assert left.mean() > 3e-3
