@@ -200,11 +200,14 @@ def skin(points: np.ndarray, nodes: np.ndarray, k: int, sigma_m: float) -> tuple
 def update_skinning(knn: np.ndarray, weights: np.ndarray, points: np.ndarray, field: WarpField,
                     first_new_node: int) -> tuple[np.ndarray, np.ndarray]:
     """Skinning after nodes first_new_node.. were appended (SurfelWarp Sec. VI-D): each point's
-    current neighbours compete only with the nearest of the new nodes."""
+    current neighbours compete only with the nearest of the new nodes. Points that no new node
+    comes nearer than their farthest current neighbour keep their skinning as it is (on a large
+    model that is nearly all of them)."""
     new = field.nodes[first_new_node:]
-    knn = np.asarray(knn)
+    knn = np.asarray(knn).astype(np.int32)
+    weights = np.asarray(weights, np.float32)
     if len(new) == 0:
-        return knn.astype(np.int32), np.asarray(weights, np.float32)
+        return knn, weights
     pts = np.asarray(points, np.float32).reshape(-1, 3)
     k = knn.shape[1]
     old = knn.astype(np.int64)
@@ -212,17 +215,25 @@ def update_skinning(knn: np.ndarray, weights: np.ndarray, points: np.ndarray, fi
     # Padding slots repeat an earlier node: they must not be kept twice.
     for s in range(1, k):
         d2_old[:, s][np.any(old[:, :s] == old[:, s:s + 1], axis=1)] = np.inf
+    nearest, _ = KDTree(new).query(pts, k=1)
+    reach = np.max(np.where(np.isfinite(d2_old), d2_old, -1.0), axis=1)
+    full = np.isinf(d2_old).any(axis=1)            # a padding slot: any new node is nearer
+    hit = np.flatnonzero(full | (nearest.reshape(-1).astype(np.float64) ** 2 < reach))
+    if len(hit) == 0:
+        return knn, weights
     j = min(k, len(new))
-    d, idx = KDTree(new).query(pts, k=j)
-    d2_new = d.reshape(len(pts), j).astype(np.float64) ** 2
-    idx_new = idx.reshape(len(pts), j).astype(np.int64) + first_new_node
-    d2 = np.concatenate([d2_old, d2_new], 1)
-    idx = np.concatenate([old, idx_new], 1)
+    d, idx = KDTree(new).query(pts[hit], k=j)
+    d2_new = d.reshape(len(hit), j).astype(np.float64) ** 2
+    idx_new = idx.reshape(len(hit), j).astype(np.int64) + first_new_node
+    d2 = np.concatenate([d2_old[hit], d2_new], 1)
+    idx = np.concatenate([old[hit], idx_new], 1)
     order = np.argsort(d2, axis=1, kind="stable")[:, :k]
     d2, idx = np.take_along_axis(d2, order, 1), np.take_along_axis(idx, order, 1)
     # Replace infinite (padding) slots by the nearest node again, weight 0.
     idx = np.where(np.isfinite(d2), idx, idx[:, :1])
-    return _finish(d2, idx, k, field.sigma_m)
+    knn, weights = knn.copy(), weights.copy()
+    knn[hit], weights[hit] = _finish(d2, idx, k, field.sigma_m)
+    return knn, weights
 
 
 def blend(knn: np.ndarray, weights: np.ndarray, field: WarpField) -> np.ndarray:

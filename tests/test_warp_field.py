@@ -180,6 +180,12 @@ def test_update_skinning_equals_skinning_from_scratch(start_nodes):
     new_field, first = extend(field, pts)
     knn2, w2 = update_skinning(knn, w, pts, new_field, first)
     ref_knn, ref_w = skin(pts, new_field.nodes, 4, new_field.sigma_m)
+    if not start_nodes:
+        # Points no new node comes near keep their skinning exactly.
+        gap = np.min(np.linalg.norm(pts[:, None] - new_field.nodes[None, first:], axis=-1), axis=1)
+        far = gap > 0.1
+        assert far.sum() > 1000
+        assert np.array_equal(knn2[far], knn[far]) and np.array_equal(w2[far], w[far])
     d2 = np.sum((pts[:, None, :] - new_field.nodes[knn2]) ** 2, -1)
     d2_ref = np.sum((pts[:, None, :] - new_field.nodes[ref_knn]) ** 2, -1)
     assert np.allclose(d2, d2_ref, atol=1e-10)
