@@ -51,10 +51,10 @@ def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None
 
     DQB commutes with a common left factor, so W' = A^-1 o W exactly. Without this, rigid
     tracking error that the non-rigid solve absorbs would stay in the warp field forever and
-    the camera pose would drift from the composite motion that is actually tracked. Weighting
-    by data support matters when most nodes are out of view (a room): fitted to every node, A
-    takes only part of the visible nodes' common motion, the rest stays in their transforms,
-    and rigid ICP then follows the drifted visible model frame after frame.
+    the camera pose would drift from the composite motion that is actually tracked. Weighted by
+    data support, A is the seen nodes' common motion even when most nodes are out of view (a
+    room); fitted to every node alike it is only part of it, and the rest stays in their
+    transforms.
     """
     A = fit_rigid(field.nodes, field.live_nodes(), node_weights)
     G = invert(A) @ field.global_transforms()
