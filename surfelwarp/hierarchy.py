@@ -13,8 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from .dual_quaternion import dq_to_transform
-from .warp_field import WarpField, blend, sample_nodes, skin, to_local
+from .warp_field import WarpField, sample_nodes, warp_transforms_at
 
 
 @dataclass(frozen=True)
@@ -69,12 +68,6 @@ def build_hierarchy(warp_nodes: np.ndarray, epsilon_m: float, levels: int, beta:
     return Hierarchy(nodes, graph, tuple(np.arange(starts[i], starts[i + 1]) for i in range(len(layers))))
 
 
-
-
-def warp_transforms_at(field: WarpField, points: np.ndarray) -> np.ndarray:
-    """(n, 4, 4) node-local transforms at `points` equal to the current warp there (DQB)."""
-    knn, w = skin(points, field.nodes, field.params.k_skin, field.sigma_m)
-    return to_local(dq_to_transform(blend(knn, w, field)), points)
 
 
 def with_hierarchy(field: WarpField, tree: Hierarchy) -> WarpField:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .observation import CameraObservation
-from .se3 import invert
+from .se3 import invert, transform_points
 
 
 @dataclass(frozen=True)
@@ -81,9 +81,8 @@ def unsupported_mask(live_position: np.ndarray, live_normal: np.ndarray, T_camer
                      obs: CameraObservation, params: ReinitParams = ReinitParams()) -> np.ndarray:
     """(N,) bool: world-frame live surfels that should be visible in `obs` but have no depth support."""
     T = invert(np.asarray(T_camera_to_world, np.float64))
-    R, t = T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
-    p = live_position @ R.T + t
-    n = live_normal @ R.T
+    p = transform_points(T, np.asarray(live_position, np.float32))
+    n = np.asarray(live_normal, np.float32) @ T[:3, :3].T.astype(np.float32)
     intr = obs.intrinsics
     h, w = obs.valid.shape
     z = p[:, 2]

@@ -215,14 +215,15 @@ def update_skinning(knn: np.ndarray, weights: np.ndarray, points: np.ndarray, fi
     # Padding slots repeat an earlier node: they must not be kept twice.
     for s in range(1, k):
         d2_old[:, s][np.any(old[:, :s] == old[:, s:s + 1], axis=1)] = np.inf
-    nearest, _ = KDTree(new).query(pts, k=1)
+    tree = KDTree(new)
+    nearest, _ = tree.query(pts, k=1)
     reach = np.max(np.where(np.isfinite(d2_old), d2_old, -1.0), axis=1)
     full = np.isinf(d2_old).any(axis=1)            # a padding slot: any new node is nearer
     hit = np.flatnonzero(full | (nearest.reshape(-1).astype(np.float64) ** 2 < reach))
     if len(hit) == 0:
         return knn, weights
     j = min(k, len(new))
-    d, idx = KDTree(new).query(pts[hit], k=j)
+    d, idx = tree.query(pts[hit], k=j)
     d2_new = d.reshape(len(hit), j).astype(np.float64) ** 2
     idx_new = idx.reshape(len(hit), j).astype(np.int64) + first_new_node
     d2 = np.concatenate([d2_old[hit], d2_new], 1)
@@ -280,6 +281,12 @@ def inverse_warp(live_points: np.ndarray, live_normals: np.ndarray | None, knn: 
     return ref, np.einsum("nji,nj->ni", R, n).astype(_out_dtype(n))
 
 
+def warp_transforms_at(field: WarpField, points: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) node-local transforms at `points` equal to the current warp there (DQB)."""
+    knn, w = skin(points, field.nodes, field.params.k_skin, field.sigma_m)
+    return to_local(dq_to_transform(blend(knn, w, field)), points)
+
+
 def extend(field: WarpField, new_ref_points: np.ndarray) -> tuple[WarpField, int]:
     """Add nodes for reference points farther than sigma from every node (DynamicFusion Sec. 3.4).
 
@@ -299,8 +306,6 @@ def extend(field: WarpField, new_ref_points: np.ndarray) -> tuple[WarpField, int
     if len(uncovered) == 0:
         return field, m
     new_nodes = sample_nodes(uncovered, field.params.node_radius_m)
-    knn, w = skin(new_nodes, field.nodes, field.params.k_skin, field.sigma_m)
-    G = dq_to_transform(blend(knn, w, field))
     nodes = np.concatenate([field.nodes, new_nodes])
-    transforms = np.concatenate([field.transforms, to_local(G, new_nodes)])
+    transforms = np.concatenate([field.transforms, warp_transforms_at(field, new_nodes)])
     return WarpField(nodes, transforms, build_graph(nodes, field.params.graph_k), field.params), m

@@ -2,10 +2,10 @@
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from surfelwarp.hierarchy import build_hierarchy, warp_transforms_at, with_hierarchy
+from surfelwarp.hierarchy import build_hierarchy, with_hierarchy
 from surfelwarp.nonrigid import reg_residuals
 from surfelwarp.se3 import se3_exp
-from surfelwarp.warp_field import WarpField, skin, warp
+from surfelwarp.warp_field import WarpField, skin, warp, warp_transforms_at
 
 
 def bent(nodes, curvature):

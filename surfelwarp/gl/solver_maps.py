@@ -89,9 +89,9 @@ class _Renderer:
         prog["u_min_cos"].value = MIN_COS
         # The fill surfels draw behind every depth of the first set: they show only where it left
         # the pixel empty.
-        layers = ((0, len(elements), (0.0, 1.0)),) if not len(fill_elements) else \
-            ((0, len(elements), (0.0, 0.5)), (len(elements), len(fill_elements), (0.5, 0.5)))
-        for first, count, layer in layers:
+        first_scale = 0.5 if len(fill_elements) else 1.0
+        for first, count, layer in ((0, len(elements), (0.0, first_scale)),
+                                    (len(elements), len(fill_elements), (0.5, 0.5))):
             if count:
                 prog["u_depth_layer"].value = layer
                 self._vertex_array().render(moderngl.POINTS, vertices=count, first=first)
