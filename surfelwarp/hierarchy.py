@@ -4,7 +4,9 @@ Coarser levels of regularisation nodes sit above the warp nodes; each node links
 nearest nodes of the next level (no links between siblings), so a smooth bend over many warp
 nodes stretches the coarse links and costs far more than under the k-nearest-node graph, where
 it is nearly free. The solver sees one field of all levels (with_hierarchy); only the warp nodes
-(level 0) skin surfels, the others only regularise.
+(level 0) skin surfels, the others only regularise. With keep_graph the warp nodes also keep
+SurfelWarp's k-nearest-node edges: local stiffness as with the graph alone, plus the tree's
+resistance to the wide, smooth bends that let a static room drift.
 """
 from __future__ import annotations
 
@@ -22,6 +24,8 @@ class HierarchyParams:
     levels: int = 4          # L, counting the warp nodes as level 0 (DynamicFusion Sec. 4)
     beta: float = 4.0        # level l is decimated at epsilon * beta^l, epsilon = node_radius_m
     k: int = 4               # links from each node to its k nearest of the next level
+    keep_graph: bool = False # also keep the k-nearest-node graph among the warp nodes
+                             # (SurfelWarp Eq. 10) beside the tree's links
 
 
 @dataclass(frozen=True)
@@ -68,12 +72,18 @@ def build_hierarchy(warp_nodes: np.ndarray, epsilon_m: float, levels: int, beta:
     return Hierarchy(nodes, graph, tuple(np.arange(starts[i], starts[i + 1]) for i in range(len(layers))))
 
 
-
-
-def with_hierarchy(field: WarpField, tree: Hierarchy) -> WarpField:
+def with_hierarchy(field: WarpField, tree: Hierarchy, keep_graph: bool = False) -> WarpField:
     """The warp field plus the regularisation nodes (transforms from the current warp) and the
-    tree's edges: solve_nonrigid optimises them all, the data term only touches level 0."""
+    tree's edges: solve_nonrigid optimises them all, the data term only touches level 0. With
+    keep_graph the warp nodes keep their k-nearest-node edges too."""
     extra = tree.nodes[tree.num_warp_nodes:]
     transforms = np.concatenate([field.transforms, warp_transforms_at(field, extra)]) if len(extra) \
         else field.transforms
-    return WarpField(tree.nodes, transforms, tree.graph, field.params)
+    graph = tree.graph
+    if keep_graph:
+        # The tree stores its links at their coarse end, so the warp nodes' rows are free.
+        m, k = field.graph.shape
+        graph = np.repeat(np.arange(len(tree.nodes), dtype=np.int32)[:, None], max(k, tree.graph.shape[1]), axis=1)
+        graph[m:, :tree.graph.shape[1]] = tree.graph[m:]
+        graph[:m, :k] = field.graph
+    return WarpField(tree.nodes, transforms, graph, field.params)

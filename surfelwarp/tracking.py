@@ -89,7 +89,8 @@ class Tracker:
         field (not yet factored)."""
         depth = (obs.vertex_map, obs.normal_map, obs.valid, self.intrinsics)
         model = (surfels.positions, surfels.normals, surfels.knn, surfels.weights)
-        solve_field = field if not self.params.hierarchy.enabled else with_hierarchy(field, self._hierarchy(field))
+        h = self.params.hierarchy
+        solve_field = with_hierarchy(field, self._hierarchy(field), h.keep_graph) if h.enabled else field
         solved, result = solve_nonrigid(solve_field, *model, *depth, self.T_camera_to_world, self.params.nonrigid)
         if not result.converged and not np.array_equal(self.T_camera_to_world, self._T_guess):
             # Rigid ICP can mistake deformation for camera motion: try the solve from the

@@ -88,3 +88,23 @@ def test_a_smooth_bend_costs_more_through_the_tree():
     edges = np.count_nonzero(field.graph != np.arange(len(nodes))[:, None])
     assert np.sqrt(graph / edges) < 1e-3        # about curvature x length^2 / 2
     assert tree > 100 * graph
+
+
+def test_keep_graph_adds_the_warp_nodes_edges_to_the_tree():
+    """keep_graph: the regulariser is the k-nearest-node graph's among the warp nodes plus the
+    tree's links, residual for residual."""
+    rng = np.random.default_rng(6)
+    nodes = WarpField.from_points(rng.uniform(-0.3, 0.3, (8000, 3)) * [1, 1, 0]).nodes
+    field = rolled(nodes, 0.5)
+    tree = build_hierarchy(nodes, 0.025, 4, 4.0, 4)
+    both = with_hierarchy(field, tree, keep_graph=True)
+    only_tree = with_hierarchy(field, tree)
+    assert np.array_equal(both.transforms, only_tree.transforms)
+    e_graph = np.sum(reg_residuals(field) ** 2)
+    e_tree = np.sum(reg_residuals(only_tree) ** 2)
+    e_both = np.sum(reg_residuals(both) ** 2)
+    assert e_graph > 0 and e_tree > 0
+    np.testing.assert_allclose(e_both, e_graph + e_tree, rtol=1e-9)
+    m = len(nodes)
+    np.testing.assert_array_equal(both.graph[:m, :field.graph.shape[1]], field.graph)
+
