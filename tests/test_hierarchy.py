@@ -107,4 +107,3 @@ def test_keep_graph_adds_the_warp_nodes_edges_to_the_tree():
     np.testing.assert_allclose(e_both, e_graph + e_tree, rtol=1e-9)
     m = len(nodes)
     np.testing.assert_array_equal(both.graph[:m, :field.graph.shape[1]], field.graph)
-
