@@ -31,8 +31,8 @@ class TrackingParams:
     factor_rigid_motion: bool = True   # move the warp field's common rigid motion into the pose
     factor_by_support: bool = True     # that motion fitted to the nodes the depth constrains,
                                        # weighted by their pairs' skinning (False: every node alike)
-    # DynamicFusion's deformation tree as the regulariser (hierarchy.py); off: the k-nearest-node
-    # graph of SurfelWarp Eq. 8.
+    # DynamicFusion's deformation tree as the regulariser (hierarchy.py): in place of SurfelWarp's
+    # k-nearest-node graph (Eq. 10), or on top of it with hierarchy.keep_graph; off: the graph.
     hierarchy: HierarchyParams = field(default_factory=HierarchyParams)
 
 

@@ -232,7 +232,7 @@ def update_skinning(knn: np.ndarray, weights: np.ndarray, points: np.ndarray, fi
     d2, idx = np.take_along_axis(d2, order, 1), np.take_along_axis(idx, order, 1)
     # Replace infinite (padding) slots by the nearest node again, weight 0.
     idx = np.where(np.isfinite(d2), idx, idx[:, :1])
-    knn, weights = knn.copy(), weights.copy()
+    weights = weights.copy()     # knn is a fresh copy (astype); weights may be the caller's
     knn[hit], weights[hit] = _finish(d2, idx, k, field.sigma_m)
     return knn, weights
 
