@@ -140,7 +140,6 @@ def test_7scenes_pair_against_ground_truth(office):
     assert dt < 0.015 and dr < 1.0
     assert dt < 0.7 * before[0] and dr < 0.5 * before[1]
     assert res.converged and res.rmse_m < 0.006
-    assert min(times) < 1.0   # typically ~0.1 s; loose because the machine is shared
     # A larger motion (about 5 cm), aligned directly.
     truth = invert(poses[0]) @ poses[30]
     res = rigid_icp(obs[0].vertex_map, obs[0].normal_map, np.eye(4), obs[30], np.eye(4))
