@@ -46,3 +46,14 @@ class Intrinsics:
         u = (np.arange(w, dtype=np.float32) - self.cx) / self.fx
         v = (np.arange(h, dtype=np.float32) - self.cy) / self.fy
         return np.stack([depth * u[None, :], depth * v[:, None], depth], axis=-1).astype(np.float32)
+
+
+# Kinect axial noise sigma(z) = a + b (z - z0)^2 metres (Nguyen, Izadi & Lovell 2012): a, b, z0.
+KINECT_AXIAL_NOISE = (0.0012, 0.0019, 0.4)
+
+
+def axial_noise_sigma_m(depth_m, coeffs: tuple[float, ...] = KINECT_AXIAL_NOISE):
+    """The depth sensor's axial noise standard deviation at each depth (keeps float32 float32)."""
+    a, b, z0 = coeffs
+    z = np.asarray(depth_m)
+    return a + b * (z - z0) ** 2

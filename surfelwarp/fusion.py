@@ -16,6 +16,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .camera import KINECT_AXIAL_NOISE, axial_noise_sigma_m
 from .gl.index_map import FAR_M, NEAR_M, FusionMaps
 from .observation import CameraObservation
 from .surfels import SurfelModel
@@ -35,8 +36,7 @@ class FusionParams:
     # previous frame's model at the right pose (distance median 2.1 mm, 95th percentile 10.8 mm)
     # and were appended as duplicates.
     distance_noise_sigmas: float = 3.0
-    # Kinect axial noise sigma(z) = a + b (z - z0)^2 metres (Nguyen, Izadi & Lovell 2012): a, b, z0.
-    axial_noise: tuple[float, ...] = (0.0012, 0.0019, 0.4)
+    axial_noise: tuple[float, ...] = KINECT_AXIAL_NOISE   # a, b, z0 of camera.axial_noise_sigma_m
     normal_threshold: float = 0.85          # delta_normal: min dot(n_depth, n_surfel)
     stable_confidence: float = 10.0         # delta_stable
     unstable_frames: int = 30               # t_low_confid
@@ -58,9 +58,7 @@ class Correspondences(NamedTuple):
 def distance_gate_m(depth_m: np.ndarray, params: FusionParams = FusionParams()) -> np.ndarray:
     """The fusion distance gate at each depth: the fixed threshold, widened to
     distance_noise_sigmas times the axial noise sigma(z) where that is larger (float32)."""
-    a, b, z0 = params.axial_noise
-    z = np.asarray(depth_m, np.float32)
-    sigma = np.float32(a) + np.float32(b) * (z - np.float32(z0)) ** 2
+    sigma = axial_noise_sigma_m(np.asarray(depth_m, np.float32), params.axial_noise)
     return np.maximum(np.float32(params.distance_threshold_m), np.float32(params.distance_noise_sigmas) * sigma)
 
 

@@ -35,6 +35,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .anchor import AnchorTerm, anchor_residuals, deviation_m
 from .camera import Intrinsics
 from .dual_quaternion import _components, apply_components, dq_blend_indexed, dq_multiply
 from .se3 import invert, se3_exp
@@ -84,6 +85,7 @@ class NonRigidResult:
     converged: bool                # ended on a tiny update or energy decrease (not on the
                                    # iteration limit, an energy rise or too few pairs)
     node_support: np.ndarray | None = None   # (M,) skinning weight of the final pairs per node
+    released: np.ndarray | None = None       # (M,) anchored nodes this solve set free (anchor.py)
 
     @property
     def data_rmse_m(self) -> float:
@@ -468,13 +470,44 @@ def normal_equations(field: WarpField, J_data: np.ndarray, knn: np.ndarray, r_da
     return pattern.matrix(bd + lambda_reg * br), (gd + lambda_reg * gr).reshape(-1)
 
 
-def _normal_equations_factored(field, pattern, sel, b, signed, points, normals, D, r, w, lambda_reg):
-    """normal_equations for the surfels sel, from their blends (see _data_terms_factored);
-    also returns the diagonal blocks (M, 6, 6)."""
+def _normal_blocks(field, pattern, sel, b, signed, points, normals, D, r, w, lambda_reg):
+    """normal_equations for the surfels sel, from their blends (see _data_terms_factored), as
+    the pattern's upper blocks (n_upper, 6, 6) and the gradient (M, 6)."""
     bd, gd = _data_terms_factored(pattern, sel, b, signed, points, normals, D, r, w)
     br, gr = _reg_terms(field, pattern)
-    upper = bd + lambda_reg * br
-    return pattern.matrix(upper), (gd + lambda_reg * gr).reshape(-1), upper[pattern.diag]
+    return bd + lambda_reg * br, gd + lambda_reg * gr
+
+
+def anchor_terms(field: WarpField, anchor: AnchorTerm) -> tuple[np.ndarray, np.ndarray]:
+    """Diagonal blocks (M, 6, 6) and gradient (M, 6) of the anchor energy (anchor.py): the
+    anchor point z = L_j y moves by [-[z]x, I] xi_j under the update, the form _pair_blocks sums."""
+    res, z = anchor_residuals(field.transforms, anchor.rest, field.sigma_m)
+    m = field.num_nodes
+    blocks = _pair_blocks(z.reshape(-1, 3), z.reshape(-1, 3)).reshape(m, 4, 6, 6).sum(axis=1)
+    g = np.concatenate([np.cross(z, res), res], axis=-1).sum(axis=1)
+    return anchor.mu[:, None, None] * blocks, anchor.mu[:, None] * g
+
+
+def anchor_energy(field: WarpField, anchor: AnchorTerm | None) -> float:
+    if anchor is None:
+        return 0.0
+    res, _ = anchor_residuals(field.transforms, anchor.rest, field.sigma_m)
+    return float(np.sum(anchor.mu * np.sum(res ** 2, axis=(1, 2))))
+
+
+def _solve_step(pattern, upper, g, free, params) -> np.ndarray:
+    """The damped Gauss-Newton step (M, 6) of the nodes `free` (the others keep 0)."""
+    H, g, diag = pattern.matrix(upper), g.reshape(-1), upper[pattern.diag]
+    if not free.all():
+        H, g, diag = restrict(H, g, diag, free)
+    ok = False
+    if params.linear_solver == "pcg":
+        xi, _, ok = solve_step_pcg(H, g, params.damping, params.pcg_rtol, params.pcg_max_iterations, diag)
+    if not ok:
+        xi = solve_step(H, g, params.damping)
+    if not free.all():
+        xi = _expand(xi, free)
+    return xi.reshape(-1, 6)
 
 
 def free_nodes(graph: np.ndarray, supported: np.ndarray, rings: int) -> np.ndarray:
@@ -591,23 +624,33 @@ def _warp_state(field, ref_points, ref_normals, knn, weights):
     return dq, b, signed, live, live_n
 
 
-def _energy(field, corr, live, params):
+def _energy(field, corr, live, params, anchor=None):
     """(total, data, reg, residuals, IRLS weights) at `field` over the pairs corr, given the
-    field's live points (3, N)."""
+    field's live points (3, N); the total includes the anchor energy."""
     r = np.einsum("ci,ic->c", corr.normals, live[:, corr.index] - corr.points.T)
     cost, w = _robust(r, params.robust, params.robust_scale_m)
     data, reg = float(np.sum(cost)), float(np.sum(reg_residuals(field) ** 2))
-    return data + params.lambda_reg * reg, data, reg, r, w
+    return data + params.lambda_reg * reg + anchor_energy(field, anchor), data, reg, r, w
+
+
+def _release(field, pattern, upper, g, free, anchor, params) -> np.ndarray:
+    """(M,) anchored nodes the data and regulariser alone would move farther than their
+    release distance from rest in one step."""
+    step = _solve_step(pattern, upper, g, free, params)
+    moved = deviation_m(apply_update(field, step).transforms, anchor.rest, field.sigma_m)
+    return (anchor.mu > 0) & (moved > anchor.release_m)
 
 
 def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.ndarray, knn: np.ndarray,
                    weights: np.ndarray, depth_vertex_map: np.ndarray, depth_normal_map: np.ndarray,
                    depth_valid: np.ndarray, intrinsics: Intrinsics, T_camera_to_world: np.ndarray,
-                   params: NonRigidParams = NonRigidParams()) -> tuple[WarpField, NonRigidResult]:
+                   params: NonRigidParams = NonRigidParams(),
+                   anchor: AnchorTerm | None = None) -> tuple[WarpField, NonRigidResult]:
     """Gauss-Newton on Eq. 8 starting from `field`; returns the improved field and a summary.
 
     ref_points/ref_normals (N, 3) are the reference positions of the model surfels to use (the
     visible ones), knn/weights their skinning; the depth maps are the observation's, camera frame.
+    With an anchor term, its nodes are held at rest except those the first iteration releases.
     """
     if params.robust not in ROBUST:
         raise ValueError(f"robust must be one of {ROBUST}, got {params.robust!r}")
@@ -624,6 +667,7 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
         return _warp_state(f, ref_points, ref_normals, knn, weights)
 
     current, state, energies, steps, converged = field, None, [], 0, False
+    released = None
     free = np.ones(field.num_nodes, bool) if params.free_rings is None else None
     for _ in range(params.max_iterations):
         state = warped(current) if state is None else state
@@ -632,27 +676,26 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
         if len(corr.index) < params.min_correspondences:
             break
         idx = corr.index
-        total, _, _, r, w = _energy(current, corr, live, params)
-        energies.append(total)
+        total, _, _, r, w = _energy(current, corr, live, params, anchor)
         if pattern is None:
             pattern = BlockPattern(current.num_nodes, current.graph, knn)
-        H, g, diag = _normal_equations_factored(current, pattern, idx, b, signed, ref_points, corr.normals,
-                                                _twist_dual_quaternions(current, dq), r, w,
-                                                params.lambda_reg)
+        upper, g = _normal_blocks(current, pattern, idx, b, signed, ref_points, corr.normals,
+                                  _twist_dual_quaternions(current, dq), r, w, params.lambda_reg)
         if free is None:
             in_view = np.zeros(current.num_nodes, bool)
             in_view[knn.reshape(-1)] = True
             free = free_nodes(current.graph, in_view, params.free_rings)
-        if not free.all():
-            H, g, diag = restrict(H, g, diag, free)
-        ok = False
-        if params.linear_solver == "pcg":
-            xi, _, ok = solve_step_pcg(H, g, params.damping, params.pcg_rtol, params.pcg_max_iterations, diag)
-        if not ok:
-            xi = solve_step(H, g, params.damping)
-        if not free.all():
-            xi = _expand(xi, free)
-        xi = xi.reshape(-1, 6)
+        if anchor is not None:
+            if released is None:
+                released = _release(current, pattern, upper, g, free, anchor, params)
+                held = AnchorTerm(np.where(released, 0.0, anchor.mu), anchor.rest, anchor.release_m)
+                total += anchor_energy(current, held) - anchor_energy(current, anchor)
+                anchor = held
+            blocks, ga = anchor_terms(current, anchor)
+            upper[pattern.diag] += blocks
+            g = g + ga
+        energies.append(total)
+        xi = _solve_step(pattern, upper, g, free, params)
         steps += 1
         if not np.all(np.isfinite(xi)):
             break
@@ -664,7 +707,7 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
             break
         # The candidate's warp gives its energy and, if it is kept, the next association.
         cand_state = warped(candidate)
-        e_new = _energy(candidate, corr, cand_state[3], params)[0]
+        e_new = _energy(candidate, corr, cand_state[3], params, anchor)[0]
         if not e_new < total:
             break
         current, state = candidate, cand_state
@@ -674,7 +717,8 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
 
     state = warped(current) if state is None else state
     corr = _associate(state[3], state[4], targets, params)
-    total, data, reg, _, _ = _energy(current, corr, state[3], params)
+    total, data, reg, _, _ = _energy(current, corr, state[3], params, anchor)
     energies.append(total)
     support = np.bincount(knn[corr.index].ravel(), weights[corr.index].ravel(), minlength=current.num_nodes)
-    return current, NonRigidResult(steps, total, data, reg, len(corr.index), tuple(energies), converged, support)
+    return current, NonRigidResult(steps, total, data, reg, len(corr.index), tuple(energies), converged, support,
+                                   released)

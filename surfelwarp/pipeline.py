@@ -113,6 +113,8 @@ class SurfelWarpMethod:
 
         extra = {"correspondences": nonrigid.correspondences, "data_rmse_mm": 1000 * nonrigid.data_rmse_m,
                  "rigid_rmse_m": float(rigid.rmse_m), "rigid_iterations": rigid.iterations}
+        if self.tracker.anchors is not None:
+            extra["released_nodes"] = int(self.tracker.anchors.released.sum())
         reinitialized = False
         if self.fusion:
             extra |= self._fuse_and_update(obs, timer)

@@ -1,5 +1,5 @@
-"""The tracker both methods share: rigid ICP, then non-rigid Gauss-Newton, then the warp field's
-common rigid motion moved into the camera pose.
+"""The tracker both methods share: rigid ICP, then non-rigid Gauss-Newton (with rest anchors,
+anchor.py), then the warp field's common rigid motion moved into the camera pose.
 
 Pose conventions: `T_camera_to_world` maps this frame's camera points into the world (the first
 frame's camera); twists are (omega, v), rotation first (se3.py).
@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .anchor import AnchorParams, NodeAnchors, node_depth_m
 from .camera import Intrinsics
 from .hierarchy import Hierarchy, HierarchyParams, build_hierarchy, with_hierarchy
 from .nonrigid import NonRigidParams, NonRigidResult, solve_nonrigid
@@ -34,6 +35,7 @@ class TrackingParams:
     # DynamicFusion's deformation tree as the regulariser (hierarchy.py): in place of SurfelWarp's
     # k-nearest-node graph (Eq. 10), or on top of it with hierarchy.keep_graph; off: the graph.
     hierarchy: HierarchyParams = field(default_factory=HierarchyParams)
+    anchor: AnchorParams = field(default_factory=AnchorParams)   # weight 0: off
 
 
 @dataclass(frozen=True)
@@ -45,9 +47,10 @@ class SurfelSet:
     weights: np.ndarray
 
 
-def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None) -> tuple[WarpField, np.ndarray]:
+def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None,
+                        rest_points: np.ndarray | None = None) -> tuple[WarpField, np.ndarray]:
     """Split W = A o W' with A the rigid motion best fitting the nodes' displacements
-    (weighted by node_weights, if given).
+    (weighted by node_weights, if given) from rest_points (default: the nodes themselves).
 
     DQB commutes with a common left factor, so W' = A^-1 o W exactly. Without this, rigid
     tracking error that the non-rigid solve absorbs would stay in the warp field forever and
@@ -56,7 +59,7 @@ def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None
     room); fitted to every node alike it is only part of it, and the rest stays in their
     transforms.
     """
-    A = fit_rigid(field.nodes, field.live_nodes(), node_weights)
+    A = fit_rigid(field.nodes if rest_points is None else rest_points, field.live_nodes(), node_weights)
     G = invert(A) @ field.global_transforms()
     return field.with_transforms(to_local(G, field.nodes)), A
 
@@ -70,6 +73,7 @@ class Tracker:
         self._camera_velocity = np.eye(4)     # previous frame's camera motion, T_prev^-1 T_now
         self.tree: Hierarchy | None = None    # the deformation tree of the last solve, if enabled
         self._tree_nodes: np.ndarray | None = None
+        self.anchors: NodeAnchors | None = None   # of the last solved field, if anchors are on
 
     def rigid(self, model_vertex: np.ndarray, model_normal: np.ndarray, obs: CameraObservation) -> RigidResult:
         """Rigid ICP of the observation to world-frame model maps drawn at the current pose;
@@ -91,13 +95,22 @@ class Tracker:
         model = (surfels.positions, surfels.normals, surfels.knn, surfels.weights)
         h = self.params.hierarchy
         solve_field = with_hierarchy(field, self._hierarchy(field), h.keep_graph) if h.enabled else field
-        solved, result = solve_nonrigid(solve_field, *model, *depth, self.T_camera_to_world, self.params.nonrigid)
+        anchor = None
+        if self.params.anchor.weight > 0:
+            self.anchors = self.anchors.follow(field) if self.anchors is not None else NodeAnchors.at_rest(field)
+            anchor = self.anchors.term(self.params.anchor, node_depth_m(field, self.T_camera_to_world),
+                                       solve_field.num_nodes)
+        solved, result = solve_nonrigid(solve_field, *model, *depth, self.T_camera_to_world, self.params.nonrigid,
+                                        anchor)
         if not result.converged and not np.array_equal(self.T_camera_to_world, self._T_guess):
             # Rigid ICP can mistake deformation for camera motion: try the solve from the
             # starting pose too and keep the better fit (with about as many pairs).
-            solved2, result2 = solve_nonrigid(solve_field, *model, *depth, self._T_guess, self.params.nonrigid)
+            solved2, result2 = solve_nonrigid(solve_field, *model, *depth, self._T_guess, self.params.nonrigid,
+                                              anchor)
             if result2.energy < result.energy and result2.correspondences >= 0.9 * result.correspondences:
                 solved, result, self.T_camera_to_world = solved2, result2, self._T_guess
+        if result.released is not None:
+            self.anchors = self.anchors.release(result.released)
         # The tree's upper levels only regularise; the warp nodes come first.
         return field.with_transforms(solved.transforms[:field.num_nodes]), result
 
@@ -113,13 +126,23 @@ class Tracker:
         """Move the field's common rigid motion into the pose (if enabled); ends the frame.
         `result` (the solve's) gives the node support the motion is fitted to."""
         p = self.params
+        anchors = self.anchors if p.anchor.weight > 0 and self.anchors is not None \
+            and self.anchors.nodes is field.nodes else None
         if p.factor_rigid_motion:
-            support = None
+            support, rest = None, None
             if p.factor_by_support and result is not None and result.node_support is not None:
                 support = result.node_support[:field.num_nodes]
                 # a Kabsch fit needs three nodes not on a line; fewer supported: every node alike
                 support = support if np.count_nonzero(support) >= 3 else None
-            field, A = factor_rigid_motion(field, support)
+            if anchors is not None and support is not None:
+                held = support * ~anchors.released
+                if held.sum() >= 0.5 * support.sum():
+                    # The motion that returns the anchored nodes to rest is the camera's; fitted
+                    # to all, the moving parts would drag the pose and the anchored nodes along.
+                    support, rest = held, field.nodes + anchors.rest[:, :3, 3]
+            field, A = factor_rigid_motion(field, support, rest)
             self.T_camera_to_world = invert(A) @ self.T_camera_to_world
+        if anchors is not None:
+            self.anchors = anchors.settle(field, node_depth_m(field, self.T_camera_to_world), p.anchor)
         self._camera_velocity = invert(self._T_previous) @ self.T_camera_to_world
         return field

@@ -265,7 +265,8 @@ def test_association_gates_pairs(problem):
     assert np.all(np.einsum("ij,ij->i", live_n[upright.index], upright.normals) > 0.99)
 
 
-def test_iteration_time_with_500_nodes_and_20k_pairs():
+def test_one_iteration_with_500_nodes_and_20k_pairs():
+    """Printed, not asserted, time: speed goals live in bench_nonrigid (the machine may be shared)."""
     prob = Problem(node_radius_m=0.0195)
     field = random_field(prob, 0.1)
     idx = np.random.default_rng(4).choice(len(prob.points), 20000, replace=False)
@@ -281,8 +282,7 @@ def test_iteration_time_with_500_nodes_and_20k_pairs():
         best = min(best, time.perf_counter() - t0)
     print(f"{field.num_nodes} nodes, {len(idx)} pairs: residual + Jacobian + J^T J + sparse solve {best * 1000:.0f} ms")
     assert 450 <= field.num_nodes <= 600
-    assert np.all(np.isfinite(xi))
-    assert best < 0.5
+    assert np.all(np.isfinite(xi)) and np.abs(xi).max() > 0
 
 
 def test_real_camera_motion_on_7scenes():
@@ -368,8 +368,9 @@ def test_factored_normal_equations_equal_the_generic_ones(problem, lookup, monke
     pattern = nr.BlockPattern(field.num_nodes, field.graph, knn)
     dq = field.dual_quaternions()
     b, signed = nr.dq_blend_indexed(dq, knn, w)
-    H, g, diag = nr._normal_equations_factored(field, pattern, sel, b, signed, _components(p), n,
-                                               nr._twist_dual_quaternions(field, dq), r, rw, 5.0)
+    upper, g = nr._normal_blocks(field, pattern, sel, b, signed, _components(p), n,
+                                 nr._twist_dual_quaternions(field, dq), r, rw, 5.0)
+    H, g, diag = pattern.matrix(upper), g.reshape(-1), upper[pattern.diag]
     J = data_jacobian(field, p[sel], knn[sel], w[sel], n)
     H_ref, g_ref = normal_equations(field, J, knn[sel], r, rw, 5.0)
     H, H_ref = H.toarray(), H_ref.toarray()
