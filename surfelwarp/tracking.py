@@ -1,5 +1,5 @@
-"""The tracker both methods share: rigid ICP, then non-rigid Gauss-Newton (with rest anchors,
-anchor.py), then the warp field's common rigid motion moved into the camera pose.
+"""The tracker both methods share: rigid ICP, then non-rigid Gauss-Newton (optionally with rest
+anchors, anchor.py), then the warp field's common rigid motion moved into the camera pose.
 
 Pose conventions: `T_camera_to_world` maps this frame's camera points into the world (the first
 frame's camera); twists are (omega, v), rotation first (se3.py).
@@ -136,7 +136,7 @@ class Tracker:
                 support = support if np.count_nonzero(support) >= 3 else None
             if anchors is not None and support is not None:
                 held = support * ~anchors.released
-                if held.sum() >= 0.5 * support.sum():
+                if np.count_nonzero(held) >= 3 and held.sum() >= 0.5 * support.sum():
                     # The motion that returns the anchored nodes to rest is the camera's; fitted
                     # to all, the moving parts would drag the pose and the anchored nodes along.
                     support, rest = held, field.nodes + anchors.rest[:, :3, 3]
