@@ -31,6 +31,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from .camera import axial_noise_sigma_m
+from .se3 import invert, transform_points
 from .warp_field import WarpField
 
 
@@ -74,8 +75,7 @@ def deviation_m(transforms: np.ndarray, rest: np.ndarray, sigma_m: float) -> np.
 
 def node_depth_m(field: WarpField, T_camera_to_world: np.ndarray) -> np.ndarray:
     """(M,) depth of each live node in the camera (at least 0.3 m, the sensor's near limit)."""
-    T_world_to_camera = np.linalg.inv(T_camera_to_world)
-    z = field.live_nodes() @ T_world_to_camera[2, :3] + T_world_to_camera[2, 3]
+    z = transform_points(invert(T_camera_to_world), field.live_nodes())[:, 2]
     return np.maximum(z, 0.3)
 
 
