@@ -1,46 +1,56 @@
-"""Rest anchors: warp nodes the depth shows at rest are held at their rest transform.
+"""Rest anchors: warp nodes the depth shows at rest are held at their rest transform, up to
+one rigid motion they share.
 
 Not in either paper. The data term and the graph regulariser (SurfelWarp Eq. 8) leave the
 field free to bend wherever depth is noisy or inconsistent, and every bend is carried into the
 reference by inverse warping, so on a static room seen by a moving camera the field and the
-pose random-walk together (7-Scenes: 8.1 cm ATE over 200 frames, against 4.8 cm for rigid ICP
-alone). An anchored node j adds
+pose random-walk together (7-Scenes: 8.1 cm ATE over 200 frames without anchors, against
+4.8 cm for rigid ICP alone). An anchored node j adds
 
-    E_anchor = mu sum_a |L_j y_a - Rest_j y_a|^2,   y_a in {0, sigma e_x, sigma e_y, sigma e_z}
+    E_anchor = mu sum_a |L_j y_a - G Rest_j y_a|^2,   y_a in {0, sigma e_x, sigma e_y, sigma e_z}
 
-(node-local points, sigma the skinning radius) to the solve: the same units as the data term,
-so mu = 1 weighs a node's rest like one depth pair per anchor point. A node is released
-(mu = 0) in a frame's first Gauss-Newton iteration when the step the data alone asks for
-would move it more than release_sigmas times the sensor's axial noise at its depth from its
-rest: real motion leaves the noise behind within a frame, noise does not. A released node
-that then moves less than settle_sigmas a frame for settle_frames frames in a row is anchored
-again at its new transform, so a hand that moves and stops stops drifting too. The tracker
-moves into the camera pose the rigid motion that returns the anchored nodes to rest.
+(node-local points moved to world, sigma the skinning radius) to the solve: the same units as
+the data term, so mu = 1 weighs a node's rest like one depth pair per anchor point. G is one
+world rigid motion shared by all anchored nodes and solved with them: what rigid ICP left of
+the camera's motion, so a pose error neither pulls against the anchors nor releases them.
 
-Off by default: on the waving sheet, nodes settle where the wave turns and then lag until
-the data pulls them release_sigmas away (EPE 11.9 mm against 4.1 mm; README).
+A node is released (mu = 0) in a frame's first Gauss-Newton iteration when the step the data
+alone asks for would move it more than release_sigmas times the sensor's axial noise at its
+depth from G Rest_j, G then being the rigid motion of the supported anchored nodes that stay
+within that distance of it: real motion leaves the noise behind within a frame, noise does
+not. Only nodes with depth pairs of their own (release_support) are released: at the edge of
+the view the step moves nodes through the regulariser alone. A released node that then stays
+within settle_sigmas of one transform for settle_frames frames in a row is anchored again
+there, so a hand that moves and stops stops drifting too; measured from where the still run
+began, not frame to frame, so that a node slowing down where a wave turns is not anchored
+while it still creeps. The tracker moves into the camera
+pose the rigid motion that returns the anchored nodes to rest (about G). Nodes held out of
+the solve (out of view) follow G, as rigid ICP's motion would move them.
 
-Nodes added by warp-field extension take the released flag of their nearest old node and
-their birth transform as rest; a rebuilt field (reinitialisation) starts anchored at rest.
+Nodes added by warp-field extension are anchored at their birth transform (if they move, the
+next frame's first iteration releases them); a rebuilt field (reinitialisation) starts
+anchored at rest.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
 from .camera import axial_noise_sigma_m
-from .se3 import invert, transform_points
-from .warp_field import WarpField
+from .se3 import fit_rigid, invert, transform_points
+from .warp_field import WarpField, to_global, to_local
 
 
 @dataclass(frozen=True)
 class AnchorParams:
-    weight: float = 0.0             # mu; 0: no anchors (the papers' solve); 1 for a mostly static scene
-    release_sigmas: float = 2.0     # release when data alone moves a node this many sigma(z) from rest
-    settle_sigmas: float = 1.0      # re-anchor a released node that moves less than this many sigma(z) ...
-    settle_frames: int = 3          # ... a frame for this many frames in a row
+    weight: float = 1.0             # mu; 0: no anchors (the papers' solve)
+    release_sigmas: float = 2.0     # release when data alone moves a node this many sigma(z) from rest,
+    release_support: float = 5.0    # and its pairs' skinning weights sum to at least this
+    settle_sigmas: float = 1.0      # re-anchor a released node that stays within this many sigma(z)
+    settle_frames: int = 10         # of one transform for this many frames in a row
+    common_motion: bool = True      # rest follows one rigid motion solved with the nodes (False:
+                                    # rest itself, so a pose error releases still nodes)
 
 
 @dataclass(frozen=True)
@@ -49,6 +59,8 @@ class AnchorTerm:
     mu: np.ndarray          # (M,) anchor weight (0: free)
     rest: np.ndarray        # (M, 4, 4) node-local rest transforms
     release_m: np.ndarray   # (M,) free-step distance from rest that releases an anchored node
+    release_support: float = 0.0     # ... if its pairs' skinning weights sum to at least this
+    common_motion: bool = True   # rest follows a rigid motion solved with the nodes
 
 
 def anchor_offsets(sigma_m: float) -> np.ndarray:
@@ -73,6 +85,36 @@ def deviation_m(transforms: np.ndarray, rest: np.ndarray, sigma_m: float) -> np.
     return np.linalg.norm(r, axis=-1).max(axis=1)
 
 
+def follow_motion(transforms: np.ndarray, nodes: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """(M, 4, 4) node-local transforms followed by the world rigid motion G."""
+    return to_local(G @ to_global(transforms, nodes), nodes)
+
+
+def anchor_points(transforms: np.ndarray, nodes: np.ndarray, sigma_m: float) -> np.ndarray:
+    """(M, 4, 3) the world points p_j + L_j y_a."""
+    return np.asarray(nodes, np.float64)[:, None, :] + _apply(transforms, anchor_offsets(sigma_m))
+
+
+def common_motion(transforms: np.ndarray, rest: np.ndarray, nodes: np.ndarray, sigma_m: float,
+                  weights: np.ndarray, inlier_m: np.ndarray, rounds: int = 3) -> np.ndarray:
+    """The world rigid motion G best taking the nodes' rest anchor points to those of
+    `transforms` (Kabsch, weighted), refitted to the nodes within inlier_m of it: the motion
+    the still part shares, which the moving part must not drag."""
+    source = anchor_points(rest, nodes, sigma_m).reshape(-1, 3)
+    target = anchor_points(transforms, nodes, sigma_m).reshape(-1, 3)
+    w = np.asarray(weights, np.float64)
+    G = np.eye(4)
+    for _ in range(rounds):
+        if np.count_nonzero(w) < 1:
+            break
+        G = fit_rigid(source, target, np.repeat(w, 4))
+        inside = deviation_m(transforms, follow_motion(rest, nodes, G), sigma_m) <= inlier_m
+        if not inside.any():
+            break
+        w = np.where(inside, weights, 0.0)
+    return G
+
+
 def node_depth_m(field: WarpField, T_camera_to_world: np.ndarray) -> np.ndarray:
     """(M,) depth of each live node in the camera (at least 0.3 m, the sensor's near limit)."""
     z = transform_points(invert(T_camera_to_world), field.live_nodes())[:, 2]
@@ -85,8 +127,9 @@ class NodeAnchors:
     nodes: np.ndarray         # (M, 3) the field nodes this state belongs to
     rest: np.ndarray          # (M, 4, 4)
     released: np.ndarray      # (M,) bool
-    previous: np.ndarray      # (M, 4, 4) the transforms at the end of the last frame
-    still_frames: np.ndarray  # (M,) int frames in a row a released node has barely moved
+    origin: np.ndarray        # (M, 4, 4) where a released node's still run began (else its
+                              # transform at the end of the last frame)
+    still_frames: np.ndarray  # (M,) int frames in a row a released node stayed near its origin
 
     @classmethod
     def at_rest(cls, field: WarpField) -> "NodeAnchors":
@@ -103,10 +146,9 @@ class NodeAnchors:
         if m < m0 or not np.array_equal(field.nodes[:m0], self.nodes):
             return NodeAnchors.at_rest(field)
         born = field.transforms[m0:]
-        _, nearest = KDTree(self.nodes).query(field.nodes[m0:], k=1)
         return NodeAnchors(field.nodes, np.concatenate([self.rest, born]),
-                           np.concatenate([self.released, self.released[nearest.astype(np.int64)]]),
-                           np.concatenate([self.previous, born]),
+                           np.concatenate([self.released, np.zeros(m - m0, bool)]),
+                           np.concatenate([self.origin, born]),
                            np.concatenate([self.still_frames, np.zeros(m - m0, np.int64)]))
 
     def term(self, params: AnchorParams, depth_m: np.ndarray, num_solved: int) -> AnchorTerm:
@@ -115,16 +157,19 @@ class NodeAnchors:
         mu = np.concatenate([params.weight * ~self.released, np.zeros(extra)])
         rest = np.concatenate([self.rest, np.tile(np.eye(4), (extra, 1, 1))])
         release = params.release_sigmas * axial_noise_sigma_m(depth_m[:m])
-        return AnchorTerm(mu, rest, np.concatenate([release, np.full(extra, np.inf)]))
+        return AnchorTerm(mu, rest, np.concatenate([release, np.full(extra, np.inf)]), params.release_support,
+                          params.common_motion)
 
     def release(self, released: np.ndarray) -> "NodeAnchors":
         return replace(self, released=self.released | released[:len(self.nodes)])
 
     def settle(self, field: WarpField, depth_m: np.ndarray, params: AnchorParams) -> "NodeAnchors":
-        """End of frame: count the frames released nodes barely move; anchor those that settled."""
-        moved = deviation_m(field.transforms, self.previous, field.sigma_m)
+        """End of frame: count the frames released nodes stay near their origin; anchor those
+        that settled; a node that left its origin starts a new run where it is."""
+        moved = deviation_m(field.transforms, self.origin, field.sigma_m)
         still = self.released & (moved < params.settle_sigmas * axial_noise_sigma_m(depth_m))
         frames = np.where(still, self.still_frames + 1, 0)
         back = frames >= params.settle_frames
         rest = np.where(back[:, None, None], field.transforms, self.rest)
-        return NodeAnchors(field.nodes, rest, self.released & ~back, field.transforms, np.where(back, 0, frames))
+        origin = np.where((still & ~back)[:, None, None], self.origin, field.transforms)
+        return NodeAnchors(field.nodes, rest, self.released & ~back, origin, np.where(back, 0, frames))

@@ -23,19 +23,23 @@ that 8-vector are summed per node pair. The damped step is solved by conjugate g
 block-Jacobi preconditioner to a relative residual of pcg_rtol, falling back to sparse LU
 (SuperLU) when that does not converge; linear_solver='direct' always uses the LU.
 
+With rest anchors the common motion G of the anchored nodes is one more 6-vector unknown,
+coupled to every anchored node: the node system gets a border of one block row and column
+(_Bordered), which the same PCG solves.
+
 Each iteration re-associates, solves, and keeps the step only if it lowers the energy over the
 same pairs; the solve stops on a step that is tiny or barely lowers the energy, on a step that
 does not lower it, or after max_iterations.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .anchor import AnchorTerm, anchor_residuals, deviation_m
+from .anchor import AnchorTerm, anchor_residuals, common_motion, deviation_m, follow_motion
 from .camera import Intrinsics
 from .dual_quaternion import _components, apply_components, dq_blend_indexed, dq_multiply
 from .se3 import invert, se3_exp
@@ -478,36 +482,89 @@ def _normal_blocks(field, pattern, sel, b, signed, points, normals, D, r, w, lam
     return bd + lambda_reg * br, gd + lambda_reg * gr
 
 
-def anchor_terms(field: WarpField, anchor: AnchorTerm) -> tuple[np.ndarray, np.ndarray]:
-    """Diagonal blocks (M, 6, 6) and gradient (M, 6) of the anchor energy (anchor.py): the
-    anchor point z = L_j y moves by [-[z]x, I] xi_j under the update, the form _pair_blocks sums."""
-    res, z = anchor_residuals(field.transforms, anchor.rest, field.sigma_m)
+def anchor_terms(field: WarpField, anchor: AnchorTerm, G: np.ndarray = np.eye(4)) -> tuple[np.ndarray, np.ndarray]:
+    """Diagonal blocks (M, 6, 6) and gradient (M, 6) of the anchor energy (anchor.py) with the
+    rest transforms followed by the common motion G: the anchor point z = L_j y moves by
+    [-[z]x, I] xi_j under the update, the form _pair_blocks sums."""
+    res, z = anchor_residuals(field.transforms, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
     m = field.num_nodes
     blocks = _pair_blocks(z.reshape(-1, 3), z.reshape(-1, 3)).reshape(m, 4, 6, 6).sum(axis=1)
     g = np.concatenate([np.cross(z, res), res], axis=-1).sum(axis=1)
     return anchor.mu[:, None, None] * blocks, anchor.mu[:, None] * g
 
 
-def anchor_energy(field: WarpField, anchor: AnchorTerm | None) -> float:
+def anchor_border(field: WarpField, anchor: AnchorTerm, G: np.ndarray, center: np.ndarray):
+    """The terms of G's twist zeta (rotation about `center`, G <- exp(zeta) G): the blocks
+    (M, 6, 6) coupling each node's twist to zeta, zeta's own block (6, 6) and its gradient (6,).
+    The rest point q = G Rest_j y_a moves by [-[q - c]x, I] zeta, and enters the residual with
+    a minus sign."""
+    res, z = anchor_residuals(field.transforms, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
+    q = (field.nodes[:, None, :] + z - res - center).reshape(-1, 3)
+    m = field.num_nodes
+    mu = anchor.mu[:, None, None]
+    border = -mu * _pair_blocks(z.reshape(-1, 3), q).reshape(m, 4, 6, 6).sum(axis=1)
+    own = np.einsum("m,mij->ij", anchor.mu, _pair_blocks(q, q).reshape(m, 4, 6, 6).sum(axis=1))
+    g = -np.einsum("m,mai->i", anchor.mu, np.concatenate([np.cross(q.reshape(m, 4, 3), res), res], axis=-1))
+    return border, own, g
+
+
+def anchor_energy(field: WarpField, anchor: AnchorTerm | None, G: np.ndarray = np.eye(4)) -> float:
     if anchor is None:
         return 0.0
-    res, _ = anchor_residuals(field.transforms, anchor.rest, field.sigma_m)
+    res, _ = anchor_residuals(field.transforms, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
     return float(np.sum(anchor.mu * np.sum(res ** 2, axis=(1, 2))))
 
 
-def _solve_step(pattern, upper, g, free, params) -> np.ndarray:
-    """The damped Gauss-Newton step (M, 6) of the nodes `free` (the others keep 0)."""
+def turn_about(center: np.ndarray, zeta: np.ndarray) -> np.ndarray:
+    """The world rigid motion x -> c + exp(zeta) (x - c)."""
+    T = se3_exp(np.asarray(zeta, np.float64))
+    T[:3, 3] += center - T[:3, :3] @ center
+    return T
+
+
+class _Bordered:
+    """H bordered by one extra 6-variable block (the anchors' common motion): [[H, B], [B^T, C]]
+    with B given as (M, 6, 6) row blocks; as much of a matrix as the step solvers use."""
+
+    def __init__(self, H: sp.spmatrix, B: np.ndarray, C: np.ndarray):
+        self.H, self.B, self.C = H, B, C
+        n = H.shape[0] + 6
+        self.shape = (n, n)
+
+    def diagonal(self) -> np.ndarray:
+        return np.concatenate([self.H.diagonal(), np.diag(self.C)])
+
+    def __matmul__(self, p: np.ndarray) -> np.ndarray:
+        x, z = p[:-6], p[-6:]
+        top = self.H @ x + (self.B @ z).reshape(-1)
+        return np.concatenate([top, np.einsum("mij,mi->j", self.B, x.reshape(-1, 6)) + self.C @ z])
+
+    def tosparse(self) -> sp.csr_matrix:
+        m = len(self.B)
+        Bs = sp.bsr_matrix((self.B, np.zeros(m, np.int64), np.arange(m + 1)), shape=(6 * m, 6)).tocsr()
+        return sp.bmat([[self.H, Bs], [Bs.T, sp.csr_matrix(self.C)]], format="csr")
+
+
+def _solve_step(pattern, upper, g, free, params, border=None) -> tuple[np.ndarray, np.ndarray]:
+    """The damped Gauss-Newton step (M, 6) of the nodes `free` (the others keep 0), and that of
+    the anchors' common motion (6,) when its `border` (anchor_border) is given (else zeros)."""
     H, g, diag = pattern.matrix(upper), g.reshape(-1), upper[pattern.diag]
     if not free.all():
         H, g, diag = restrict(H, g, diag, free)
+    if border is not None:
+        B, C, gz = border
+        H, g, diag = _Bordered(H, B[free], C), np.concatenate([g, gz]), np.concatenate([diag, C[None]])
     ok = False
     if params.linear_solver == "pcg":
         xi, _, ok = solve_step_pcg(H, g, params.damping, params.pcg_rtol, params.pcg_max_iterations, diag)
     if not ok:
-        xi = solve_step(H, g, params.damping)
+        xi = solve_step(H.tosparse() if border is not None else H, g, params.damping)
+    zeta = np.zeros(6)
+    if border is not None:
+        xi, zeta = xi[:-6], xi[-6:]
     if not free.all():
         xi = _expand(xi, free)
-    return xi.reshape(-1, 6)
+    return xi.reshape(-1, 6), zeta
 
 
 def free_nodes(graph: np.ndarray, supported: np.ndarray, rings: int) -> np.ndarray:
@@ -624,21 +681,26 @@ def _warp_state(field, ref_points, ref_normals, knn, weights):
     return dq, b, signed, live, live_n
 
 
-def _energy(field, corr, live, params, anchor=None):
+def _energy(field, corr, live, params, anchor=None, G=np.eye(4)):
     """(total, data, reg, residuals, IRLS weights) at `field` over the pairs corr, given the
-    field's live points (3, N); the total includes the anchor energy."""
+    field's live points (3, N); the total includes the anchor energy (rest followed by G)."""
     r = np.einsum("ci,ic->c", corr.normals, live[:, corr.index] - corr.points.T)
     cost, w = _robust(r, params.robust, params.robust_scale_m)
     data, reg = float(np.sum(cost)), float(np.sum(reg_residuals(field) ** 2))
-    return data + params.lambda_reg * reg + anchor_energy(field, anchor), data, reg, r, w
+    return data + params.lambda_reg * reg + anchor_energy(field, anchor, G), data, reg, r, w
 
 
-def _release(field, pattern, upper, g, free, anchor, params) -> np.ndarray:
-    """(M,) anchored nodes the data and regulariser alone would move farther than their
-    release distance from rest in one step."""
-    step = _solve_step(pattern, upper, g, free, params)
-    moved = deviation_m(apply_update(field, step).transforms, anchor.rest, field.sigma_m)
-    return (anchor.mu > 0) & (moved > anchor.release_m)
+def _release(field, pattern, upper, g, free, anchor, support, params) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) anchored nodes the data and regulariser alone would move in one step farther than
+    their release distance from rest, and the common motion G (4, 4) the rest follows: the one
+    the still supported nodes share (identity unless anchor.common_motion)."""
+    stepped = apply_update(field, _solve_step(pattern, upper, g, free, params)[0]).transforms
+    anchored = anchor.mu > 0
+    G = np.eye(4)
+    if anchor.common_motion:
+        G = common_motion(stepped, anchor.rest, field.nodes, field.sigma_m, support * anchored, anchor.release_m)
+    moved = deviation_m(stepped, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
+    return anchored & (support >= anchor.release_support) & (moved > anchor.release_m), G
 
 
 def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.ndarray, knn: np.ndarray,
@@ -650,7 +712,9 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
 
     ref_points/ref_normals (N, 3) are the reference positions of the model surfels to use (the
     visible ones), knn/weights their skinning; the depth maps are the observation's, camera frame.
-    With an anchor term, its nodes are held at rest except those the first iteration releases.
+    With an anchor term (anchor.py), its nodes are held at rest up to one rigid motion G they
+    share, solved with them, except those the first iteration releases; nodes held out of the
+    solve follow G at the end.
     """
     if params.robust not in ROBUST:
         raise ValueError(f"robust must be one of {ROBUST}, got {params.robust!r}")
@@ -667,7 +731,7 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
         return _warp_state(f, ref_points, ref_normals, knn, weights)
 
     current, state, energies, steps, converged = field, None, [], 0, False
-    released = None
+    released, G, center, border = None, np.eye(4), None, None
     free = np.ones(field.num_nodes, bool) if params.free_rings is None else None
     for _ in range(params.max_iterations):
         state = warped(current) if state is None else state
@@ -676,7 +740,7 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
         if len(corr.index) < params.min_correspondences:
             break
         idx = corr.index
-        total, _, _, r, w = _energy(current, corr, live, params, anchor)
+        total, _, _, r, w = _energy(current, corr, live, params, anchor, G)
         if pattern is None:
             pattern = BlockPattern(current.num_nodes, current.graph, knn)
         upper, g = _normal_blocks(current, pattern, idx, b, signed, ref_points, corr.normals,
@@ -687,37 +751,52 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
             free = free_nodes(current.graph, in_view, params.free_rings)
         if anchor is not None:
             if released is None:
-                released = _release(current, pattern, upper, g, free, anchor, params)
-                held = AnchorTerm(np.where(released, 0.0, anchor.mu), anchor.rest, anchor.release_m)
-                total += anchor_energy(current, held) - anchor_energy(current, anchor)
-                anchor = held
-            blocks, ga = anchor_terms(current, anchor)
+                # Nodes held out of the solve do not see the depth: they neither release nor
+                # pull on the common motion (they follow it at the end).
+                solved = replace(anchor, mu=anchor.mu * free)
+                support = np.bincount(knn[idx].ravel(), weights[idx].ravel(), minlength=current.num_nodes)
+                released, G = _release(current, pattern, upper, g, free, solved, support, params)
+                held = replace(solved, mu=np.where(released, 0.0, solved.mu))
+                total += anchor_energy(current, held, G) - anchor_energy(current, anchor)
+                at_rest, anchor = (anchor.mu > 0) & ~released, held
+                if anchor.common_motion and anchor.mu.any():
+                    center = np.average(current.live_nodes(), axis=0, weights=anchor.mu)
+            blocks, ga = anchor_terms(current, anchor, G)
             upper[pattern.diag] += blocks
             g = g + ga
+            border = anchor_border(current, anchor, G, center) if center is not None else None
         energies.append(total)
-        xi = _solve_step(pattern, upper, g, free, params)
+        xi, zeta = _solve_step(pattern, upper, g, free, params, border)
         steps += 1
-        if not np.all(np.isfinite(xi)):
+        if not (np.all(np.isfinite(xi)) and np.all(np.isfinite(zeta))):
             break
-        candidate = apply_update(current, xi)
+        candidate, G_candidate = apply_update(current, xi), turn_about(center, zeta) @ G if center is not None else G
         moved = np.linalg.norm(candidate.transforms[:, :3, 3] - current.transforms[:, :3, 3], axis=1)
         turned = np.linalg.norm(xi[:, :3], axis=1)
         if np.max(moved + current.sigma_m * turned) < params.stop_motion_m:
-            current, state, converged = candidate, None, True
+            current, state, G, converged = candidate, None, G_candidate, True
             break
         # The candidate's warp gives its energy and, if it is kept, the next association.
         cand_state = warped(candidate)
-        e_new = _energy(candidate, corr, cand_state[3], params, anchor)[0]
+        e_new = _energy(candidate, corr, cand_state[3], params, anchor, G_candidate)[0]
         if not e_new < total:
             break
-        current, state = candidate, cand_state
+        current, state, G = candidate, cand_state, G_candidate
         if total - e_new < params.stop_energy_rel * total:
             converged = True
             break
 
+    if center is not None and not free.all():
+        # The nodes the solve held out follow the common motion of those it solved, as rigid
+        # ICP's motion would move them: the anchored ones at rest, the others as they are.
+        out, rest = ~free, ~free & at_rest
+        transforms = current.transforms.copy()
+        transforms[out] = follow_motion(transforms[out], current.nodes[out], G)
+        transforms[rest] = follow_motion(anchor.rest[rest], current.nodes[rest], G)
+        current, state = current.with_transforms(transforms), None
     state = warped(current) if state is None else state
     corr = _associate(state[3], state[4], targets, params)
-    total, data, reg, _, _ = _energy(current, corr, state[3], params, anchor)
+    total, data, reg, _, _ = _energy(current, corr, state[3], params, anchor, G)
     energies.append(total)
     support = np.bincount(knn[corr.index].ravel(), weights[corr.index].ravel(), minlength=current.num_nodes)
     return current, NonRigidResult(steps, total, data, reg, len(corr.index), tuple(energies), converged, support,

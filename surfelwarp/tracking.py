@@ -1,5 +1,6 @@
-"""The tracker both methods share: rigid ICP, then non-rigid Gauss-Newton (optionally with rest
-anchors, anchor.py), then the warp field's common rigid motion moved into the camera pose.
+"""The tracker both methods share: rigid ICP, then non-rigid Gauss-Newton (with rest anchors,
+anchor.py, unless their weight is 0), then the warp field's common rigid motion moved into the
+camera pose.
 
 Pose conventions: `T_camera_to_world` maps this frame's camera points into the world (the first
 frame's camera); twists are (omega, v), rotation first (se3.py).
@@ -35,7 +36,7 @@ class TrackingParams:
     # DynamicFusion's deformation tree as the regulariser (hierarchy.py): in place of SurfelWarp's
     # k-nearest-node graph (Eq. 10), or on top of it with hierarchy.keep_graph; off: the graph.
     hierarchy: HierarchyParams = field(default_factory=HierarchyParams)
-    anchor: AnchorParams = field(default_factory=AnchorParams)   # weight 0: off
+    anchor: AnchorParams = field(default_factory=AnchorParams)   # weight 0: off (the papers' solve)
 
 
 @dataclass(frozen=True)

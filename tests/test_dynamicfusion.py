@@ -72,7 +72,9 @@ def test_sheet_run_writes_the_contract_and_tracks_the_surface(sheet, tmp_path):
         assert row["completeness_10mm_pct"] > 95, row
         assert row["normal_consistency"] > 0.99, row
     assert result["frames"][0]["epe_mean_mm"] is None     # frame 0 is its own reference
-    assert result["frames"][-1]["epe_mean_mm"] < 9      # 6.3 mm measured; the sheet moved 31 mm on average
+    # 10.7 mm measured (6.3 mm with the anchors off: they hold nodes until the data moves them
+    # 2 sigma); the sheet moved 31 mm on average
+    assert result["frames"][-1]["epe_mean_mm"] < 13
     # The live mesh follows the moving sheet: the canonical mesh itself is far from frame 7's surface.
     gt = synth.load_groundtruth(sheet)
     truth = TriangleMesh(gt.vertices[7], gt.faces)

@@ -35,7 +35,7 @@ def test_sheet_is_reconstructed_and_tracked(sheet):
     assert metrics["method"] == "surfelwarp" and metrics["config"]["method"]["fusion_enabled"] is True
     assert avg["accuracy_median_mm"] < 1.0
     assert avg["completeness_10mm_pct"] > 97 and avg["precision_5mm_pct"] > 97
-    assert avg["epe_mean_mm"] < 6.0
+    assert avg["epe_mean_mm"] < 8.0        # issue 5's figure; 6.3 measured (under 6 with the anchors off)
     frames = metrics["frames"]
     assert not any(f["reinitialized"] for f in frames)
     assert all(f["fused"] > 0.85 * f["surfels"] for f in frames[1:])   # most surfels see depth each frame
@@ -143,16 +143,17 @@ def test_bad_config_from_the_cli_exits_2_and_writes_nothing(release, tmp_path):
 
 def test_rest_anchors_keep_a_static_scene_from_drifting(tmp_path):
     """A still life seen by an orbiting camera: under the k-nearest-node graph alone (the
-    default) the field slowly bends along the wide bends the graph barely resists, and the pose
-    drifts with it. Rest anchors (tracking.anchor.weight = 1) hold the nodes nothing moves;
-    DynamicFusion's tree on top of the graph (tracking.hierarchy.keep_graph) resists the bends."""
+    papers' solve, anchors off) the field slowly bends along the wide bends the graph barely
+    resists, and the pose drifts with it. Rest anchors (the default) hold the nodes nothing
+    moves; DynamicFusion's tree on top of the graph (tracking.hierarchy.keep_graph) resists the
+    bends."""
     seq = synth.generate("orbit", tmp_path / "seq", frames=40, size=(320, 240))
-    anchored = tmp_path / "anchored.toml"
-    anchored.write_text("[tracking.anchor]\nweight = 1.0\n")
-    tree = tmp_path / "tree.toml"
-    tree.write_text("[tracking.hierarchy]\nenabled = true\nkeep_graph = true\n")
+    off = "[tracking.anchor]\nweight = 0.0\n"
+    graph, tree = tmp_path / "graph.toml", tmp_path / "tree.toml"
+    graph.write_text(off)
+    tree.write_text(off + "[tracking.hierarchy]\nenabled = true\nkeep_graph = true\n")
     ate = {}
-    for name, flags in (("graph", ()), ("anchored", ("--config", anchored)), ("tree", ("--config", tree))):
+    for name, flags in (("graph", ("--config", graph)), ("anchored", ()), ("tree", ("--config", tree))):
         frames = run(seq, tmp_path / name, "--save-every", 1000, *flags)["frames"]
         ate[name] = evaluate.evaluate(tmp_path / name, seq)["trajectory"]["ate_cm"]
         if name == "anchored":     # the scene is still: nearly every node stays anchored
