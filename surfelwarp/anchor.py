@@ -23,9 +23,9 @@ the view the step moves nodes through the regulariser alone. A released node tha
 within settle_sigmas of one transform for settle_frames frames in a row is anchored again
 there, so a hand that moves and stops stops drifting too; measured from where the still run
 began, not frame to frame, so that a node slowing down where a wave turns is not anchored
-while it still creeps. The tracker moves into the camera
-pose the rigid motion that returns the anchored nodes to rest (about G). Nodes held out of
-the solve (out of view) follow G, as rigid ICP's motion would move them.
+while it still creeps. The tracker moves into the camera pose the rigid motion that returns
+the anchored nodes to rest (about G). Nodes held out of the solve (out of view) follow G, as
+rigid ICP's motion would move them.
 
 Nodes added by warp-field extension are anchored at their birth transform (if they move, the
 next frame's first iteration releases them); a rebuilt field (reinitialisation) starts

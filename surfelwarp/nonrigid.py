@@ -482,30 +482,27 @@ def _normal_blocks(field, pattern, sel, b, signed, points, normals, D, r, w, lam
     return bd + lambda_reg * br, gd + lambda_reg * gr
 
 
-def anchor_terms(field: WarpField, anchor: AnchorTerm, G: np.ndarray = np.eye(4)) -> tuple[np.ndarray, np.ndarray]:
-    """Diagonal blocks (M, 6, 6) and gradient (M, 6) of the anchor energy (anchor.py) with the
-    rest transforms followed by the common motion G: the anchor point z = L_j y moves by
-    [-[z]x, I] xi_j under the update, the form _pair_blocks sums."""
+def anchor_terms(field: WarpField, anchor: AnchorTerm, G: np.ndarray = np.eye(4), center: np.ndarray | None = None):
+    """The anchor energy's terms (anchor.py), its rest transforms followed by the common motion G:
+    the diagonal blocks (M, 6, 6) and gradient (M, 6) of the node twists (the anchor point
+    z = L_j y moves by [-[z]x, I] xi_j under the update, the form _pair_blocks sums), and, given
+    a `center`, the border of G's twist zeta (rotation about center, G <- exp(zeta) G): the
+    blocks (M, 6, 6) coupling each node's twist to zeta, zeta's own block (6, 6) and its
+    gradient (6,); else None. The rest point q = G Rest_j y_a moves by [-[q - c]x, I] zeta and
+    enters the residual with a minus sign."""
     res, z = anchor_residuals(field.transforms, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
-    m = field.num_nodes
-    blocks = _pair_blocks(z.reshape(-1, 3), z.reshape(-1, 3)).reshape(m, 4, 6, 6).sum(axis=1)
-    g = np.concatenate([np.cross(z, res), res], axis=-1).sum(axis=1)
-    return anchor.mu[:, None, None] * blocks, anchor.mu[:, None] * g
-
-
-def anchor_border(field: WarpField, anchor: AnchorTerm, G: np.ndarray, center: np.ndarray):
-    """The terms of G's twist zeta (rotation about `center`, G <- exp(zeta) G): the blocks
-    (M, 6, 6) coupling each node's twist to zeta, zeta's own block (6, 6) and its gradient (6,).
-    The rest point q = G Rest_j y_a moves by [-[q - c]x, I] zeta, and enters the residual with
-    a minus sign."""
-    res, z = anchor_residuals(field.transforms, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
-    q = (field.nodes[:, None, :] + z - res - center).reshape(-1, 3)
     m = field.num_nodes
     mu = anchor.mu[:, None, None]
-    border = -mu * _pair_blocks(z.reshape(-1, 3), q).reshape(m, 4, 6, 6).sum(axis=1)
-    own = np.einsum("m,mij->ij", anchor.mu, _pair_blocks(q, q).reshape(m, 4, 6, 6).sum(axis=1))
-    g = -np.einsum("m,mai->i", anchor.mu, np.concatenate([np.cross(q.reshape(m, 4, 3), res), res], axis=-1))
-    return border, own, g
+    blocks = _pair_blocks(z.reshape(-1, 3), z.reshape(-1, 3)).reshape(m, 4, 6, 6).sum(axis=1)
+    g = np.concatenate([np.cross(z, res), res], axis=-1).sum(axis=1)
+    border = None
+    if center is not None:
+        q = (field.nodes[:, None, :] + z - res - center).reshape(-1, 3)
+        coupling = -mu * _pair_blocks(z.reshape(-1, 3), q).reshape(m, 4, 6, 6).sum(axis=1)
+        own = np.einsum("m,mij->ij", anchor.mu, _pair_blocks(q, q).reshape(m, 4, 6, 6).sum(axis=1))
+        gz = -np.einsum("m,mai->i", anchor.mu, np.concatenate([np.cross(q.reshape(m, 4, 3), res), res], axis=-1))
+        border = (coupling, own, gz)
+    return mu * blocks, anchor.mu[:, None] * g, border
 
 
 def anchor_energy(field: WarpField, anchor: AnchorTerm | None, G: np.ndarray = np.eye(4)) -> float:
@@ -547,7 +544,7 @@ class _Bordered:
 
 def _solve_step(pattern, upper, g, free, params, border=None) -> tuple[np.ndarray, np.ndarray]:
     """The damped Gauss-Newton step (M, 6) of the nodes `free` (the others keep 0), and that of
-    the anchors' common motion (6,) when its `border` (anchor_border) is given (else zeros)."""
+    the anchors' common motion (6,) when its `border` (from anchor_terms) is given (else zeros)."""
     H, g, diag = pattern.matrix(upper), g.reshape(-1), upper[pattern.diag]
     if not free.all():
         H, g, diag = restrict(H, g, diag, free)
@@ -761,10 +758,9 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
                 at_rest, anchor = (anchor.mu > 0) & ~released, held
                 if anchor.common_motion and anchor.mu.any():
                     center = np.average(current.live_nodes(), axis=0, weights=anchor.mu)
-            blocks, ga = anchor_terms(current, anchor, G)
+            blocks, ga, border = anchor_terms(current, anchor, G, center)
             upper[pattern.diag] += blocks
             g = g + ga
-            border = anchor_border(current, anchor, G, center) if center is not None else None
         energies.append(total)
         xi, zeta = _solve_step(pattern, upper, g, free, params, border)
         steps += 1
