@@ -11,6 +11,10 @@ OUT/live/frame-%06d.ply:
   point within the threshold; F = 2PC / (P + C);
 - normal consistency: mean |n_live . n_gt| with n_gt the interpolated GT normal at the
   closest GT point;
+- far_2cm_pct: share of live points more than 2 cm from the GT mesh (a model that left the
+  surface), %;
+- depth_explained_1cm_pct: share of the frame's valid input depth pixels (the run's clipping
+  and border crop, every `stride`-th pixel) with a live point within 1 cm, %;
 - end-point error (EPE), mm: each live point's ref_* position is snapped to the GT mesh of
   its reference_frame (closest point: triangle + barycentric coordinates), the same
   barycentric point on this frame's GT mesh is its true position; EPE = |live - true|
@@ -26,7 +30,8 @@ source) lands on an object pixel with known flow, and, for scale, the EPE of not
 Trajectory (any ground truth with poses, also 7-Scenes-style frame-%06d.pose.txt): camera
 poses of metrics.json and of the ground truth, both relative to the run's first frame; ATE =
 RMSE of the translation difference without alignment, cm (also after the best rigid
-alignment, and the mean rotation error in degrees).
+alignment, the largest translation error of any frame in mm, and the mean rotation error in
+degrees).
 Writes OUT/eval.json: {"run", "sequence", "ground_truth", "frames": [...], "average": {...},
 "trajectory": {...}}; values that cannot be computed are null.
 """
@@ -53,7 +58,7 @@ from .synth import GroundTruth, load_groundtruth
 THRESHOLDS_MM = (5, 10)
 FRAME_KEYS = ("points", "accuracy_median_mm", "accuracy_mean_mm",
               *(f"{kind}_{t}mm_pct" for t in THRESHOLDS_MM for kind in ("precision", "completeness", "fscore")),
-              "normal_consistency", "epe_mean_mm", "epe_median_mm", "epe_under_1cm_pct", "epe_under_2cm_pct",
+              "normal_consistency", "far_2cm_pct", "depth_explained_1cm_pct", "epe_mean_mm", "epe_median_mm", "epe_under_1cm_pct", "epe_under_2cm_pct",
               "moving_points", "epe_moving_mean_mm", "epe_moving_median_mm", "zero_motion_epe_mm")
 NOT_MEANINGFUL = ("every part of the scene moves and the camera is still: the run's camera pose "
                   "carries the scene's common motion, so ATE is not a tracking error here")
@@ -113,11 +118,28 @@ def _fscore(p: float, r: float) -> float:
     return 0.0 if p + r == 0 else 2 * p * r / (p + r)
 
 
+def _depth_points(seq, frame: int, preprocess: dict, stride: int) -> np.ndarray | None:
+    """The frame's valid depth pixels as camera-frame points (every stride-th pixel), with the
+    run's clipping and border crop (config.preprocess); None without that frame."""
+    files = {f.index: f for f in seq.files}
+    if frame not in files:
+        return None
+    depth = seq.read_depth(files[frame]).astype(np.float32)
+    near, far = preprocess.get("clip_near_m", 0.1), preprocess.get("clip_far_m", 3.0)
+    depth[(depth < near) | (depth > far)] = 0
+    b = int(preprocess.get("boundary_crop_px", 10))
+    if b > 0:
+        depth[:b], depth[-b:], depth[:, :b], depth[:, -b:] = 0, 0, 0, 0
+    points = seq.intrinsics.backproject(depth)[::stride, ::stride].reshape(-1, 3)
+    return points[points[:, 2] > 0]
+
+
 class _SyntheticScorer:
-    def __init__(self, gt: GroundTruth, stride: int):
+    def __init__(self, gt: GroundTruth, stride: int, seq=None, preprocess: dict | None = None):
         from .render import MeshRenderer
 
         self.gt, self.stride = gt, stride
+        self.seq, self.preprocess = seq, preprocess or {}
         self.renderer = MeshRenderer(gt.intrinsics)
         self._meshes: dict[int, TriangleMesh] = {}
 
@@ -150,6 +172,10 @@ class _SyntheticScorer:
         dist_mm = 1000 * near.distance
         out["accuracy_median_mm"] = float(np.median(dist_mm))
         out["accuracy_mean_mm"] = float(np.mean(dist_mm))
+        out["far_2cm_pct"] = _pct(dist_mm > 20)
+        depth = _depth_points(self.seq, frame, self.preprocess, self.stride) if self.seq is not None else None
+        if depth is not None and len(depth):
+            out["depth_explained_1cm_pct"] = _pct(KDTree(live).query(depth, k=1)[0] < 0.01)
         samples = self.visible_samples(fi)
         coverage_mm = 1000 * KDTree(live).query(samples, k=1)[0] if len(samples) else np.zeros(0)
         for t in THRESHOLDS_MM:
@@ -206,13 +232,15 @@ def trajectory_errors(estimated: dict[int, np.ndarray], truth: dict[int, np.ndar
     """ATE (cm) of camera-to-world poses; both sets are taken relative to the first common frame."""
     frames = [f for f in estimated if f in truth]
     if not frames:
-        return {"frames": 0, "ate_cm": None, "ate_aligned_cm": None, "rotation_error_deg": None}
+        return {"frames": 0, "ate_cm": None, "ate_aligned_cm": None, "max_translation_error_mm": None,
+                "rotation_error_deg": None}
     first = frames[0]
     # General inverse: recorded poses (7-Scenes) are not exactly orthonormal.
     est = np.stack([np.linalg.solve(estimated[first], estimated[f]) for f in frames])
     gt = np.stack([np.linalg.solve(truth[first], truth[f]) for f in frames])
     diff = est[:, :3, 3] - gt[:, :3, 3]
     ate = math.sqrt(np.mean(np.sum(diff ** 2, 1)))
+    worst = float(1000 * np.max(np.linalg.norm(diff, axis=1)))
     cos = (np.einsum("nij,nij->n", est[:, :3, :3], gt[:, :3, :3]) - 1) / 2
     rot = float(np.degrees(np.mean(np.arccos(np.clip(cos, -1, 1)))))
     # Best rigid alignment of the estimated camera centres onto the true ones (Kabsch).
@@ -224,7 +252,7 @@ def trajectory_errors(estimated: dict[int, np.ndarray], truth: dict[int, np.ndar
     aligned = (a - ca) @ R.T + cb
     ate_aligned = math.sqrt(np.mean(np.sum((aligned - b) ** 2, 1)))
     return {"frames": len(frames), "ate_cm": 100 * ate, "ate_aligned_cm": 100 * ate_aligned,
-            "rotation_error_deg": rot}
+            "max_translation_error_mm": worst, "rotation_error_deg": rot}
 
 
 def _average(rows: list[dict]) -> dict:
@@ -253,7 +281,7 @@ def evaluate(run_dir, seq_dir, stride: int = 2) -> dict:
         live = _live_files(run_dir)
         if not live:
             raise InputError(run_dir / "live", "no live/frame-%06d.ply files to evaluate")
-        scorer = _SyntheticScorer(gt, stride)
+        scorer = _SyntheticScorer(gt, stride, open_sequence(seq_dir), metrics.get("config", {}).get("preprocess"))
         try:
             for frame, path in live.items():
                 if frame not in records:
@@ -307,15 +335,17 @@ def _fmt(value, digits=1) -> str:
 def format_table(result: dict) -> str:
     lines = []
     if result["frames"]:
-        header = (f"{'frame':>6} {'ref':>5} {'points':>7} {'acc mm':>7} {'F@5mm':>6} {'F@1cm':>6} {'comp@1cm':>8} "
-                  f"{'normal':>6} {'EPE mm':>7} {'med':>6} {'<1cm%':>6} {'<2cm%':>6} {'EPE mov':>7}")
+        header = (f"{'frame':>6} {'ref':>5} {'points':>7} {'acc mm':>7} {'>2cm%':>6} {'F@5mm':>6} {'F@1cm':>6} "
+                  f"{'comp@1cm':>8} {'expl%':>6} {'normal':>6} {'EPE mm':>7} {'med':>6} {'<1cm%':>6} {'<2cm%':>6} "
+                  f"{'EPE mov':>7}")
         lines.append(header)
 
         def line(label, ref, r):
             r = {key: r.get(key) for key in FRAME_KEYS}
             return (f"{label:>6} {ref:>5} {_fmt(r['points'], 0):>7} {_fmt(r['accuracy_median_mm'], 2):>7} "
-                    f"{_fmt(r['fscore_5mm_pct']):>6} {_fmt(r['fscore_10mm_pct']):>6} "
-                    f"{_fmt(r['completeness_10mm_pct']):>8} {_fmt(r['normal_consistency'], 3):>6} "
+                    f"{_fmt(r['far_2cm_pct']):>6} {_fmt(r['fscore_5mm_pct']):>6} {_fmt(r['fscore_10mm_pct']):>6} "
+                    f"{_fmt(r['completeness_10mm_pct']):>8} {_fmt(r['depth_explained_1cm_pct']):>6} "
+                    f"{_fmt(r['normal_consistency'], 3):>6} "
                     f"{_fmt(r['epe_mean_mm']):>7} {_fmt(r['epe_median_mm']):>6} "
                     f"{_fmt(r['epe_under_1cm_pct']):>6} {_fmt(r['epe_under_2cm_pct']):>6} "
                     f"{_fmt(r['epe_moving_mean_mm']):>7}")
@@ -333,7 +363,8 @@ def format_table(result: dict) -> str:
     if result["ground_truth"] == "sceneflow":
         return "\n".join(lines)
     lines.append(f"trajectory over {t['frames']} frames: ATE {_fmt(t['ate_cm'], 2)} cm "
-                 f"(aligned {_fmt(t['ate_aligned_cm'], 2)} cm), rotation error {_fmt(t['rotation_error_deg'], 2)} deg")
+                 f"(aligned {_fmt(t['ate_aligned_cm'], 2)} cm), largest error {_fmt(t.get('max_translation_error_mm'), 1)} mm, "
+                 f"rotation error {_fmt(t['rotation_error_deg'], 2)} deg")
     return "\n".join(lines)
 
 

@@ -5,7 +5,9 @@ first frame's camera sits at the origin unless the scene moves the camera. Motio
 defined per frame index (fixed speed per frame), so more frames mean a longer sequence of
 the same motion. Every deformation is isometric or close to it: bending of a strip (exact),
 bending of thin tubes (strain = radius x curvature <= 3 %) and a mild torsion (shear <= 6 %,
-i.e. <= 3 % principal stretch); the rest is rigid.
+i.e. <= 3 % principal stretch); the rest is rigid. The one exception is limb-wall: a 9 cm
+thick limb bending 100 degrees stretches its outer side and compresses its inner side by 22 %,
+as flesh does (Scene.max_strain).
 """
 from __future__ import annotations
 
@@ -35,6 +37,7 @@ class Scene:
     description: str
     default_frames: int
     build: Callable[[], Animation]
+    max_strain: float = 0.035     # largest edge strain of the motion (0.035: near isometric)
 
 
 def _static_camera(_: int) -> np.ndarray:
@@ -208,6 +211,163 @@ def orbit() -> Animation:
     return Animation(faces, part, np.zeros(len(vertices), bool), lambda i: vertices, camera)
 
 
+def _ramp(t: float, ease: float = 0.2) -> float:
+    """0 -> 1 over t in [0, 1] at constant speed, easing in and out over `ease` of the time
+    (speed 1 / (1 - ease): 1.25, against 1.57 for a cosine)."""
+    t = float(np.clip(t, 0.0, 1.0))
+    if t < ease:
+        p = t * t / (2 * ease)
+    elif t <= 1 - ease:
+        p = ease / 2 + t - ease
+    else:
+        p = 1 - ease - (1 - t) ** 2 / (2 * ease)
+    return p / (1 - ease)
+
+
+def limb_wall() -> Animation:
+    radius, length = 0.045, 0.35
+    limb, limb_faces = meshes.capsule(radius, length, SPACING_M)
+    # One flat wall and nothing else still: it constrains the camera's depth and tilt, and
+    # leaves both translations along it and the turn about its normal to the limb alone.
+    wall, wall_faces = meshes.plane(2.4, 1.8, 0.025)
+    vertices, faces, part = meshes.merge((wall @ rotation("y", 0.1).T + [0.0, 0.0, 1.3], wall_faces),
+                                         (limb, limb_faces))
+    is_limb = part == 1
+    s, a, b = limb[:, 1], limb[:, 0], limb[:, 2]
+    s_grid = np.linspace(0.0, length, 351)
+    lean = rotation("y", 0.25)                     # bending plane turned 14 deg into depth
+    base = np.array([-0.12, 0.35, 0.9])            # the root's cap reaches the bottom of the image
+
+    def positions(i: int) -> np.ndarray:
+        # Bends to 100 deg at frame 40 and back by 80, curvature spread along the limb (a
+        # thick limb bends with ~22 % strain on its inner and outer sides).
+        u = (i % 80) / 40
+        angle = np.deg2rad(100.0) * _ramp(u if u <= 1 else 2 - u)
+        e1, e2 = meshes.bend_strip(s, a, s_grid, angle * s_grid / length)
+        local = np.stack([e2, -e1, b], -1)         # axis to world -y, bending direction to +x
+        out = vertices.copy()
+        out[is_limb] = local @ lean.T + base
+        return out
+
+    return Animation(faces, part, is_limb, positions, _static_camera)
+
+
+def free_sheet() -> Animation:
+    width, height = 0.5, 0.4
+    rest, faces = meshes.plane(width, height, SPACING_M)
+    s, r = rest[:, 0] + width / 2, rest[:, 1]
+    s_grid = np.linspace(0.0, width, 501)
+    centre_line = np.zeros_like(s_grid)
+
+    def positions(i: int) -> np.ndarray:
+        # Waves travel along the sheet (0.3 m long, one wavelength per 40 frames) and nothing
+        # holds it: the shape moves across the material, which depth alone cannot tell from
+        # material sliding; the sheet turns slowly as a whole.
+        theta = 0.45 * np.sin(2 * np.pi * (s_grid / 0.3 - i / 40)) + 0.1 * np.sin(2 * np.pi * s_grid / 0.5 + 0.7)
+        ripple = 0.002 * np.sin(2 * np.pi * r / 0.2 + 0.5) * (0.7 + 0.3 * np.sin(2 * np.pi * i / 40))
+        x, z = meshes.bend_strip(s, ripple, s_grid, theta)
+        # The centre line's chord along x, its centroid at the origin: a free sheet has no
+        # fixed point, and this keeps the material's motion smooth.
+        cx, cz = meshes.bend_strip(s_grid, centre_line, s_grid, theta)
+        chord = np.arctan2(cz[-1] - cz[0], cx[-1] - cx[0])
+        local = np.stack([x - cx.mean(), r, z - cz.mean()], -1) @ rotation("y", chord).T
+        turn = rotation("y", 0.35 * np.sin(2 * np.pi * i / 120)) @ rotation("x", 0.12 * np.sin(2 * np.pi * i / 90))
+        return local @ turn.T + [0.02 * np.sin(2 * np.pi * i / 100), 0.0, 0.85]
+
+    n = len(rest)
+    return Animation(faces, np.zeros(n, np.int16), np.ones(n, bool), positions, _static_camera)
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """4x4 camera-to-scene of a camera at `eye` looking at `target`, image up along `up`."""
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = np.stack([x, np.cross(z, x), z], -1), eye
+    return T
+
+
+def _segment(mesh: np.ndarray, start: np.ndarray, end: np.ndarray, side: np.ndarray) -> np.ndarray:
+    """A capsule mesh along local +y placed from `start` towards `end`; its local x turned
+    towards `side` (a continuous choice, so the part does not spin about its axis)."""
+    y = (end - start) / np.linalg.norm(end - start)
+    x = side - (side @ y) * y
+    x /= np.linalg.norm(x)
+    return mesh @ np.stack([x, y, np.cross(x, y)], -1).T + start
+
+
+def _elbow(shoulder: np.ndarray, hand: np.ndarray, upper: float, fore: float, pole: np.ndarray) -> np.ndarray:
+    """Two-link inverse kinematics: the elbow between shoulder and hand, bent towards `pole`."""
+    d = hand - shoulder
+    dist = np.linalg.norm(d)
+    axis = d / dist
+    along = (upper ** 2 - fore ** 2 + dist ** 2) / (2 * dist)
+    out = pole - (pole @ axis) * axis
+    out /= np.linalg.norm(out)
+    return shoulder + along * axis + np.sqrt(max(upper ** 2 - along ** 2, 0.0)) * out
+
+
+def table() -> Animation:
+    # Built in a table frame (x right, y away from the camera, z up), seen by a still camera
+    # above the near edge looking down at the table and the person across it.
+    k = SPACING_M
+    top, top_faces = meshes.plane(1.6, 1.0, 0.025)
+    skirt_long, skirt_long_faces = meshes.plane(1.6, 0.05, 0.025)
+    skirt_short, skirt_short_faces = meshes.plane(1.0, 0.05, 0.025)
+    floor, floor_faces = meshes.plane(3.0, 2.0, 0.05)
+    wall, wall_faces = meshes.plane(3.0, 1.8, 0.05)
+    up = rotation("x", np.pi / 2)                  # local +y to +z
+    torso, torso_faces = meshes.capsule(0.15, 0.45, k)
+    torso = torso * [1.0, 1.0, 0.65]               # flatter front to back
+    head, head_faces = meshes.sphere(0.095, k)
+    upper, fore = 0.27, 0.25
+    upper_arm, upper_faces = meshes.capsule(0.045, upper, k)
+    forearm, fore_faces = meshes.capsule(0.037, fore, k)
+    hand, hand_faces = meshes.sphere(0.045, k)
+    side_x = rotation("x", np.pi / 2)
+    parts = [
+        (top, top_faces),
+        (skirt_long @ side_x.T + [0.0, -0.5, -0.025], skirt_long_faces),
+        (skirt_long @ side_x.T + [0.0, 0.5, -0.025], skirt_long_faces),
+        (skirt_short @ (rotation("z", np.pi / 2) @ side_x).T + [-0.8, 0.0, -0.025], skirt_short_faces),
+        (skirt_short @ (rotation("z", np.pi / 2) @ side_x).T + [0.8, 0.0, -0.025], skirt_short_faces),
+        (np.concatenate([floor + [0.0, 0.1, -0.75], wall @ side_x.T + [0.0, 1.1, 0.15]]),
+         np.concatenate([floor_faces, wall_faces + len(floor)])),
+        (torso @ up.T, torso_faces),
+        (head, head_faces),
+        (upper_arm, upper_faces), (forearm, fore_faces), (hand, hand_faces),
+        (upper_arm, upper_faces), (forearm, fore_faces), (hand, hand_faces),
+    ]
+    vertices, faces, part = meshes.merge(*parts)
+    static = part <= 5
+    hip = np.array([0.0, 0.6, -0.2])
+
+    def positions(i: int) -> np.ndarray:
+        out = vertices.copy()
+        # The torso sways a little about the hips; the hands move over the table, touching
+        # it at times (the left one circles, the right one reaches forward and lifts).
+        sway = rotation("x", 0.04 * np.sin(2 * np.pi * i / 90)) @ rotation("y", 0.03 * np.sin(2 * np.pi * i / 70))
+        body = lambda p: (p - hip) @ sway.T + hip  # noqa: E731
+        out[part == 6] = body(vertices[part == 6] + [0.0, 0.6, -0.15])
+        out[part == 7] = body(vertices[part == 7] + [0.0, 0.6, 0.48])
+        phase = 2 * np.pi * i / 80
+        hands = [np.array([-0.25 + 0.1 * np.sin(phase), 0.3 + 0.1 * np.cos(phase), 0.065 + 0.02 * np.cos(phase)]),
+                 np.array([0.24 + 0.03 * np.sin(0.7 * phase), 0.25 + 0.12 * np.sin(phase + 1.0),
+                           0.08 + 0.035 * np.cos(1.5 * phase)])]
+        for side, hand_at, first in ((-1, hands[0], 8), (1, hands[1], 11)):
+            shoulder = body(np.array([0.2 * side, 0.57, 0.33]))
+            elbow = _elbow(shoulder, hand_at, upper, fore, np.array([side, 0.0, -0.3]))
+            lateral = np.array([0.0, 0.0, 1.0])
+            out[part == first] = _segment(vertices[part == first], shoulder, elbow, lateral)
+            out[part == first + 1] = _segment(vertices[part == first + 1], elbow, hand_at, lateral)
+            out[part == first + 2] = vertices[part == first + 2] + hand_at
+        return out
+
+    camera = _look_at(np.array([0.0, -0.35, 1.2]), np.array([0.0, 0.35, 0.1]), np.array([0.0, 0.0, 1.0]))
+    return Animation(faces, part, ~static, positions, lambda _: camera)
+
+
 SCENES = {s.name: s for s in (
     Scene("sheet", "a 0.5 x 0.4 m folded cloth sheet waving from a still edge, ~0.85 m away", 90, sheet),
     Scene("tube-wall", "a bending, swinging tube (arm, 5 cm thick) in a static room corner (wall, floor, side wall)", 90, tube_wall),
@@ -216,4 +376,8 @@ SCENES = {s.name: s for s in (
     Scene("release", "two fingers touching at first, open, close again, reopen", 90, release),
     Scene("fast", "a bumpy ball moving up to ~4.5 cm and turning ~3 deg per frame", 60, fast),
     Scene("orbit", "the camera circles 100 deg around a static still life (pedestal, ball, ring, rod)", 100, orbit),
+    Scene("limb-wall", "a 9 cm thick limb bending 100 deg and back in front of a lone flat wall, still camera", 40,
+          limb_wall, max_strain=0.23),
+    Scene("free-sheet", "a free sheet (no still edge) turning slowly, waves travelling across it", 40, free_sheet),
+    Scene("table", "a person at a table moving both arms over it (touching it), still camera overhead", 90, table),
 )}

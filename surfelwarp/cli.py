@@ -33,7 +33,16 @@ def _add_run_arguments(p: argparse.ArgumentParser) -> None:
                    help="template tracking: the first frame's surfels are tracked, never fused or extended")
     p.add_argument("--config", type=Path, default=None, metavar="FILE",
                    help="SurfelWarp parameters to override, TOML or JSON (see surfelwarp/config.py)")
+    p.add_argument("--camera", choices=("moving", "static"), default=None,
+                   help="'static': the camera does not move, every motion is the scene's; "
+                        "'moving' (default): its pose is estimated (config key tracking.camera)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
+
+
+def _with_camera(params, camera: str | None):
+    """params (with a `tracking` tree) with tracking.camera set by --camera, if given."""
+    from dataclasses import replace
+    return params if camera is None else replace(params, tracking=replace(params.tracking, camera=camera))
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -65,10 +74,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise InputError(out, "output path exists and is not a folder")
     if args.method == "surfelwarp":
         from .pipeline import SurfelWarpMethod, SurfelWarpParams
-        method = SurfelWarpMethod(seq.intrinsics, sw_params or SurfelWarpParams(), fusion=not args.no_fusion)
+        sw_params = _with_camera(sw_params or SurfelWarpParams(), args.camera)
+        method = SurfelWarpMethod(seq.intrinsics, sw_params, fusion=not args.no_fusion)
     elif args.method == "dynamicfusion":
-        from .dynamicfusion import DynamicFusionMethod
-        method = DynamicFusionMethod(seq.intrinsics)
+        from .dynamicfusion import DynamicFusionMethod, DynamicFusionParams
+        method = DynamicFusionMethod(seq.intrinsics, _with_camera(DynamicFusionParams(), args.camera))
     else:
         method = ObserveMethod()
     input_config = {"layout": seq.layout, "depth_scale": seq.depth_scale, "start": args.start,

@@ -244,7 +244,8 @@ class DynamicFusionMethod:
                                 mesh.faces, self.intrinsics)
         timer.lap("solver_maps")
 
-        rigid = self.tracker.rigid(*maps_to_world(maps, T_rendered), obs)
+        rigid = self.tracker.rigid(*maps_to_world(maps, T_rendered), obs,
+                                   self.tracker.stillness_map(maps.index, mesh.knn, mesh.weights))
         timer.lap("rigid")
 
         surfels = self.predicted_points(maps, T_rendered)

@@ -46,6 +46,23 @@ class FusionParams:
     redundant_distance_ratio: float = 0.5
     redundant_normal_threshold: float = 0.95
     redundant_neighbourhood_px: int = 1     # fine pixels each way (1 -> 3x3)
+    # Live surfels the camera saw through (silhouette.py's free space, with the tracker's
+    # silhouette parameters) by more than this are removed (inf: none). Nearer ones are left to
+    # the tracker's free-space term, which pulls them back: carved, a sheet's overhanging edge
+    # would no longer hold the model in place (free sheet: EPE 95 mm carving at 0, 22 mm at 1 cm).
+    carve_beyond_m: float = 0.01
+    # A depth pixel that fused into no surfel is appended only where the model has no surface:
+    # no live surfel facing the same side within the distance gate (widened by the pixels'
+    # footprint) in the pixels coverage_px around. Depth normals at 2-3 m fail the normal gate
+    # against a surfel in place, and a stretched model leaves single pixels between its
+    # surfels: neither is new surface (False: every unmatched pixel is appended, the paper's).
+    append_only_uncovered: bool = True
+    coverage_px: int = 1
+    # Fusion moves a surfel's reference position only along its normal: depth measures where
+    # the surface is, not which material point a pixel shows, so the tangential part of the
+    # inverse-warped fused position is the tracker's slide along the surface, and taking it
+    # would make the reference follow every slide (False: the paper's Eq. 3 as it is).
+    reference_along_normal: bool = True
 
 
 class Correspondences(NamedTuple):
@@ -161,9 +178,38 @@ def fuse(model: SurfelModel, T_camera_to_world: np.ndarray, obs: CameraObservati
                    confidence=confidence, t_observed=t_observed), fused
 
 
-def unmatched_depth_pixels(obs: CameraObservation, fused_pixel_mask: np.ndarray) -> np.ndarray:
-    """(H, W) mask of valid depth pixels that fused into no surfel: the append candidates."""
-    return obs.valid & ~fused_pixel_mask
+def unmatched_depth_pixels(obs: CameraObservation, fused_pixel_mask: np.ndarray, maps: FusionMaps | None = None,
+                           params: FusionParams = FusionParams()) -> np.ndarray:
+    """(H, W) mask of valid depth pixels that fused into no surfel and, given the index map,
+    that no live surfel covers (params.coverage_px): the append candidates."""
+    unmatched = obs.valid & ~fused_pixel_mask
+    if maps is None:
+        return unmatched
+    rows, cols = np.nonzero(unmatched)
+    s, reach = maps.supersample, params.coverage_px * maps.supersample
+    fine_h, fine_w = maps.index.shape
+    depth_v, depth_n = obs.vertex_map[rows, cols].T, obs.normal_map[rows, cols].T
+    # The gate, plus the footprint of the pixels reached across.
+    z = obs.depth_m[rows, cols]
+    max_d2 = (distance_gate_m(z, params) + np.sqrt(2) * params.coverage_px * z / obs.intrinsics.focal_px) ** 2
+    r0, c0 = s * rows - reach, s * cols - reach
+    covered = np.zeros(len(rows), bool)
+    for dy in range(s + 2 * reach):
+        fr = r0 + dy
+        for dx in range(s + 2 * reach):
+            fc = c0 + dx
+            inside = (fr >= 0) & (fr < fine_h) & (fc >= 0) & (fc < fine_w)
+            k = np.where(inside, maps.index[np.clip(fr, 0, fine_h - 1), np.clip(fc, 0, fine_w - 1)], -1)
+            cand = np.flatnonzero((k >= 0) & ~covered)
+            if not len(cand):
+                continue
+            kc = k[cand]
+            diff = maps.points[kc].T - depth_v[:, cand]
+            near = np.einsum("ij,ij->j", diff, diff) <= max_d2[cand]
+            same_side = np.einsum("ij,ij->j", maps.normals[kc].T, depth_n[:, cand]) > 0
+            covered[cand[near & same_side]] = True
+    unmatched[rows[covered], cols[covered]] = False
+    return unmatched
 
 
 def unstable_mask(model: SurfelModel, time: int, params: FusionParams = FusionParams()) -> np.ndarray:

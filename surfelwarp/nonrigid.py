@@ -33,16 +33,19 @@ does not lower it, or after max_iterations.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field as dc_field, replace
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .anchor import AnchorTerm, anchor_residuals, common_motion, deviation_m, follow_motion
+from .alignment import Alignment, measure
+from .anchor import (AnchorTerm, anchor_residuals, common_motion, deviation_m, follow_motion, seen_deviation_m,
+                     seen_directions)
 from .camera import Intrinsics
 from .dual_quaternion import _components, apply_components, dq_blend_indexed, dq_multiply
 from .se3 import invert, se3_exp
+from .silhouette import FreeSpace, SilhouetteParams
 from .warp_field import WarpField, warp
 
 ROBUST = ("none", "huber", "tukey")
@@ -59,6 +62,9 @@ class NonRigidParams:
     stop_motion_m: float = 1e-4        # the solve ends on an update that moves no node, nor (by
                                        # its rotation) any point sigma from a node, more than this,
     stop_energy_rel: float = 5e-3      # or that lowers the energy by less than this fraction
+    max_step_m: float = 0.05           # a step moving a node (or, by its turn, a point sigma from
+                                       # it) farther than this is shortened to it: directions
+                                       # only the free-space term sees are steep and short
     robust: str = "none"               # data-term penalty: 'none' | 'huber' | 'tukey'
     robust_scale_m: float = 0.01       # Huber corner / Tukey cut-off
     damping: float = 1e-6              # mu = damping * mean(diag(J^T J)) added to the diagonal:
@@ -76,6 +82,8 @@ class NonRigidParams:
                                        # (None: none are). Out of view they only carry the
                                        # regulariser; on a room they are most of the graph and
                                        # make the system slow to solve by PCG.
+    # Model points where the camera saw through them are pulled back (silhouette.py).
+    silhouette: SilhouetteParams = dc_field(default_factory=SilhouetteParams)
 
 
 @dataclass(frozen=True)
@@ -90,6 +98,9 @@ class NonRigidResult:
                                    # iteration limit, an energy rise or too few pairs)
     node_support: np.ndarray | None = None   # (M,) skinning weight of the final pairs per node
     released: np.ndarray | None = None       # (M,) anchored nodes this solve set free (anchor.py)
+    silhouette_energy: float = 0.0           # weight * sum of Huber(r) of the free-space term, m^2
+    silhouette_points: int = 0               # model points the camera saw through, at the result
+    alignment: Alignment | None = None       # model and depth explaining each other, at the result
 
     @property
     def data_rmse_m(self) -> float:
@@ -687,16 +698,32 @@ def _energy(field, corr, live, params, anchor=None, G=np.eye(4)):
     return data + params.lambda_reg * reg + anchor_energy(field, anchor, G), data, reg, r, w
 
 
-def _release(field, pattern, upper, g, free, anchor, support, params) -> tuple[np.ndarray, np.ndarray]:
+def _silhouette(free_space: FreeSpace | None, live: np.ndarray, live_n: np.ndarray, params: NonRigidParams):
+    """(energy, points, residuals, gradients (3, S), IRLS weights) of the free-space term at
+    the live points and normals (3, N): the points the camera saw through and theirs."""
+    if free_space is None:
+        return 0.0, np.zeros(0, np.int64), np.zeros(0), np.zeros((3, 0)), np.zeros(0)
+    r, grad = free_space.residuals(live)
+    sel = np.flatnonzero(r > 0)
+    sel = sel[free_space.facing(live[:, sel], live_n[:, sel])]
+    cost, w = _robust(r[sel], "huber", params.silhouette.huber_m)
+    weight = params.silhouette.weight
+    return weight * float(np.sum(cost)), sel, r[sel], grad[:, sel], weight * w
+
+
+def _release(field, pattern, upper, g, free, anchor, support, seen, params) -> tuple[np.ndarray, np.ndarray]:
     """(M,) anchored nodes the data and regulariser alone would move in one step farther than
-    their release distance from rest, and the common motion G (4, 4) the rest follows: the one
-    the still supported nodes share (identity unless anchor.common_motion)."""
+    their release distance from rest, measured with the metric seen (M, 3, 3) (the directions
+    their pairs see, anchor.py; None: every direction alike), and the common motion G (4, 4) the rest follows: the one the still supported
+    nodes share (identity unless anchor.common_motion)."""
     stepped = apply_update(field, _solve_step(pattern, upper, g, free, params)[0]).transforms
     anchored = anchor.mu > 0
     G = np.eye(4)
     if anchor.common_motion:
         G = common_motion(stepped, anchor.rest, field.nodes, field.sigma_m, support * anchored, anchor.release_m)
-    moved = deviation_m(stepped, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
+    rest = follow_motion(anchor.rest, field.nodes, G)
+    moved = deviation_m(stepped, rest, field.sigma_m) if seen is None else \
+        seen_deviation_m(stepped, rest, field.sigma_m, seen)
     return anchored & (support >= anchor.release_support) & (moved > anchor.release_m), G
 
 
@@ -704,14 +731,16 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
                    weights: np.ndarray, depth_vertex_map: np.ndarray, depth_normal_map: np.ndarray,
                    depth_valid: np.ndarray, intrinsics: Intrinsics, T_camera_to_world: np.ndarray,
                    params: NonRigidParams = NonRigidParams(),
-                   anchor: AnchorTerm | None = None) -> tuple[WarpField, NonRigidResult]:
+                   anchor: AnchorTerm | None = None,
+                   depth_beyond: np.ndarray | None = None) -> tuple[WarpField, NonRigidResult]:
     """Gauss-Newton on Eq. 8 starting from `field`; returns the improved field and a summary.
 
     ref_points/ref_normals (N, 3) are the reference positions of the model surfels to use (the
     visible ones), knn/weights their skinning; the depth maps are the observation's, camera frame.
     With an anchor term (anchor.py), its nodes are held at rest up to one rigid motion G they
     share, solved with them, except those the first iteration releases; nodes held out of the
-    solve follow G at the end.
+    solve follow G at the end. depth_beyond (H, W), if given, marks pixels measured past the far
+    clip, free space for the free-space term (silhouette.py).
     """
     if params.robust not in ROBUST:
         raise ValueError(f"robust must be one of {ROBUST}, got {params.robust!r}")
@@ -722,13 +751,17 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
     knn = np.asarray(knn, np.int64)
     weights = np.asarray(weights, np.float64)
     targets = _Targets(depth_vertex_map, depth_normal_map, depth_valid, intrinsics, T_camera_to_world)
+    free_space = None
+    if params.silhouette.weight > 0:
+        free_space = FreeSpace(np.asarray(depth_vertex_map)[..., 2], intrinsics, T_camera_to_world, params.silhouette,
+                               depth_beyond)
     pattern = None
 
     def warped(f):
         return _warp_state(f, ref_points, ref_normals, knn, weights)
 
     current, state, energies, steps, converged = field, None, [], 0, False
-    released, G, center, border = None, np.eye(4), None, None
+    released, G, center, border, held_rows = None, np.eye(4), None, None, None
     free = np.ones(field.num_nodes, bool) if params.free_rings is None else None
     for _ in range(params.max_iterations):
         state = warped(current) if state is None else state
@@ -740,8 +773,9 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
         total, _, _, r, w = _energy(current, corr, live, params, anchor, G)
         if pattern is None:
             pattern = BlockPattern(current.num_nodes, current.graph, knn)
-        upper, g = _normal_blocks(current, pattern, idx, b, signed, ref_points, corr.normals,
-                                  _twist_dual_quaternions(current, dq), r, w, params.lambda_reg)
+        D = _twist_dual_quaternions(current, dq)
+        upper, g = _normal_blocks(current, pattern, idx, b, signed, ref_points, corr.normals, D, r, w,
+                                  params.lambda_reg)
         if free is None:
             in_view = np.zeros(current.num_nodes, bool)
             in_view[knn.reshape(-1)] = True
@@ -752,15 +786,31 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
                 # pull on the common motion (they follow it at the end).
                 solved = replace(anchor, mu=anchor.mu * free)
                 support = np.bincount(knn[idx].ravel(), weights[idx].ravel(), minlength=current.num_nodes)
-                released, G = _release(current, pattern, upper, g, free, solved, support, params)
+                u = anchor.release_unseen_weight
+                seen = None if u >= 1 else \
+                    (1 - u) * seen_directions(current.num_nodes, knn[idx], weights[idx], corr.normals) + u * np.eye(3)
+                released, G = _release(current, pattern, upper, g, free, solved, support, seen, params)
                 held = replace(solved, mu=np.where(released, 0.0, solved.mu))
                 total += anchor_energy(current, held, G) - anchor_energy(current, anchor)
                 at_rest, anchor = (anchor.mu > 0) & ~released, held
                 if anchor.common_motion and anchor.mu.any():
                     center = np.average(current.live_nodes(), axis=0, weights=anchor.mu)
+                    if anchor.held is not None and len(anchor.held):
+                        # G goes into the camera pose: not along what rigid ICP held.
+                        G = anchor.held.project(G)
+                        held_rows = anchor.held.rows(center)
             blocks, ga, border = anchor_terms(current, anchor, G, center)
+            if held_rows is not None and len(held_rows):
+                B, C, gz = border
+                border = (B, C + 1e4 * max(np.trace(C) / 6, 1e-12) * held_rows.T @ held_rows, gz)
             upper[pattern.diag] += blocks
             g = g + ga
+        e_sil, sel, r_sil, grad_sil, w_sil = _silhouette(free_space, live, live_n, params)
+        if len(sel):
+            # The term's Jacobian is the data term's with the residual's gradient for a normal.
+            # (Added after the release test: its pull at an edge is not a node's own motion.)
+            bs, gs = _data_terms_factored(pattern, sel, b, signed, ref_points, grad_sil.T, D, r_sil, w_sil)
+            upper, g, total = upper + bs, g + gs, total + e_sil
         energies.append(total)
         xi, zeta = _solve_step(pattern, upper, g, free, params, border)
         steps += 1
@@ -772,9 +822,19 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
         if np.max(moved + current.sigma_m * turned) < params.stop_motion_m:
             current, state, G, converged = candidate, None, G_candidate, True
             break
-        # The candidate's warp gives its energy and, if it is kept, the next association.
-        cand_state = warped(candidate)
-        e_new = _energy(candidate, corr, cand_state[3], params, anchor, G_candidate)[0]
+        # The candidate's warp gives its energy and, if it is kept, the next association. A
+        # step that raises it is halved (twice at most): the free-space term is far from
+        # linear over a long step.
+        longest = min(1.0, params.max_step_m / np.max(moved + current.sigma_m * turned))
+        for scale in (longest, 0.5 * longest, 0.25 * longest):
+            if scale < 1.0:
+                candidate = apply_update(current, scale * xi)
+                G_candidate = turn_about(center, scale * zeta) @ G if center is not None else G
+            cand_state = warped(candidate)
+            e_new = (_energy(candidate, corr, cand_state[3], params, anchor, G_candidate)[0]
+                     + _silhouette(free_space, cand_state[3], cand_state[4], params)[0])
+            if e_new < total:
+                break
         if not e_new < total:
             break
         current, state, G = candidate, cand_state, G_candidate
@@ -793,7 +853,11 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
     state = warped(current) if state is None else state
     corr = _associate(state[3], state[4], targets, params)
     total, data, reg, _, _ = _energy(current, corr, state[3], params, anchor, G)
+    e_sil, sel = _silhouette(free_space, state[3], state[4], params)[:2]
+    total += e_sil
     energies.append(total)
     support = np.bincount(knn[corr.index].ravel(), weights[corr.index].ravel(), minlength=current.num_nodes)
+    vertex = np.asarray(depth_vertex_map)
+    alignment = measure(state[3].T, state[4].T, T_camera_to_world, vertex[..., 2], vertex, depth_valid, intrinsics)
     return current, NonRigidResult(steps, total, data, reg, len(corr.index), tuple(energies), converged, support,
-                                   released)
+                                   released, e_sil, len(sel), alignment)

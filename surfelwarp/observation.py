@@ -36,6 +36,8 @@ class CameraObservation:
     confidence_map: np.ndarray
     radius_map: np.ndarray
     valid: np.ndarray              # bool: depth, vertex and normal all usable
+    beyond: np.ndarray | None = None   # bool: measured farther than the far clip (free space
+                                       # in front of it, though its depth is dropped)
 
     @property
     def num_valid(self) -> int:
@@ -131,4 +133,4 @@ def preprocess(depth_m: np.ndarray, intrinsics: Intrinsics, frame_index: int, ti
     confidence = np.where(valid, confidence_map(intrinsics, params.confidence_phi), 0.0).astype(np.float32)
     radius = np.where(valid, radius_map(depth, normals, intrinsics, params.max_view_angle_deg), 0.0)
     return CameraObservation(frame_index, time, intrinsics, raw, depth, vertices, normals,
-                             confidence, radius.astype(np.float32), valid)
+                             confidence, radius.astype(np.float32), valid, depth_m > params.clip_far_m)

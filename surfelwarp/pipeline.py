@@ -28,6 +28,7 @@ from .outputs import FrameRecord
 from .ply import vertex_table, write_atomic
 from .reinit import ReinitTrigger, unsupported_mask
 from .se3 import invert, transform_points
+from .silhouette import FreeSpace
 from .surfels import SurfelModel
 from .timing import StageTimer
 from .tracking import SurfelSet, Tracker
@@ -90,14 +91,17 @@ class SurfelWarpMethod:
             recent = now - m.t_observed <= p.recent_frames
             if p.recent_draw == "fill":
                 drawn, fill = np.flatnonzero(stable), np.flatnonzero(recent & ~stable)
+            elif p.recent_draw == "fill_all":
+                drawn, fill = np.flatnonzero(stable), np.flatnonzero(~stable)
             else:
                 drawn = np.flatnonzero(stable | recent)
         maps = render_solver_maps(*transform_surfels(invert(self.T_camera_to_world), m.live_position, m.live_normal),
                                   m.radius, self.intrinsics, indices=drawn, fill_indices=fill)
         timer.lap("solver_maps")
 
-        # Rigid alignment of the observation to the rendered model.
-        rigid = self.tracker.rigid(*maps_to_world(maps, self.T_camera_to_world), obs)
+        # Rigid alignment of the observation to the rendered model, led by its still parts.
+        rigid = self.tracker.rigid(*maps_to_world(maps, self.T_camera_to_world), obs,
+                                   self.tracker.stillness_map(maps.index, m.knn, m.weights))
         timer.lap("rigid")
 
         # Non-rigid warp field on the visible surfels; its common rigid motion goes into the pose.
@@ -112,13 +116,18 @@ class SurfelWarpMethod:
         timer.lap("warp")
 
         extra = {"correspondences": nonrigid.correspondences, "data_rmse_mm": 1000 * nonrigid.data_rmse_m,
-                 "rigid_rmse_m": float(rigid.rmse_m), "rigid_iterations": rigid.iterations}
+                 "rigid_rmse_m": float(rigid.rmse_m), "rigid_iterations": rigid.iterations,
+                 "rigid_degenerate_directions": rigid.degenerate_directions}
         if self.tracker.anchors is not None:
             extra["released_nodes"] = int(self.tracker.anchors.released.sum())
+        if nonrigid.alignment is not None:
+            extra["unsupported_fraction"] = round(nonrigid.alignment.unsupported_fraction, 5)
+            extra["unexplained_fraction"] = round(nonrigid.alignment.unexplained_fraction, 5)
+        extra["silhouette_points"] = nonrigid.silhouette_points
         reinitialized = False
         if self.fusion:
             extra |= self._fuse_and_update(obs, timer)
-            if self.trigger.update(nonrigid.data_rmse_m, extra["appended"], obs.num_valid):
+            if self.trigger.update(nonrigid.data_rmse_m, extra["appended"], obs.num_valid, nonrigid.alignment):
                 extra["reinit_dropped"] = self.reinitialise(obs)
                 reinitialized = True
                 timer.lap("reinit")
@@ -147,20 +156,32 @@ class SurfelWarpMethod:
 
         # VI-B..D: unmatched depth surfels, skinned at the live frame, minus far-from-node and
         # compressive ones, inverse-warped with that skinning.
-        added = append_candidates(obs, unmatched_depth_pixels(obs, fused_pixels), T, self.field,
+        candidates = unmatched_depth_pixels(obs, fused_pixels, maps if p.fusion.append_only_uncovered else None,
+                                            p.fusion)
+        added = append_candidates(obs, candidates, T, self.field,
                                   p.warp_field.k_skin, p.append)
         timer.lap("append")
 
-        # VI-D: drop long-unstable surfels and near duplicates on the index map, then append.
-        unstable_or_redundant = removal_mask(m, maps, now, p.fusion, T)
+        # VI-D: drop long-unstable surfels and near duplicates on the index map, and the live
+        # surfels the camera saw through (free space), then append.
+        sil = p.tracking.nonrigid.silhouette
+        carved = np.zeros(len(m), bool)
+        if np.isfinite(p.fusion.carve_beyond_m):
+            carved = FreeSpace(obs.depth_m, self.intrinsics, T, sil, obs.beyond).seen_through(
+                m.live_position, m.live_normal, p.fusion.carve_beyond_m)
+        unstable_or_redundant = removal_mask(m, maps, now, p.fusion, T) | carved
         m = remove(m, unstable_or_redundant).concatenate(added.surfels(now, self._next_id))
         self._next_id += len(added)
         fused = np.concatenate([fused[~unstable_or_redundant], np.zeros(len(added), bool)])
         timer.lap("remove")
 
         # Sec. IV: the fused live surfels back to the reference frame (Eq. 3).
-        m.ref_position[fused], m.ref_normal[fused] = inverse_warp(
+        ref, m.ref_normal[fused] = inverse_warp(
             m.live_position[fused], m.live_normal[fused], m.knn[fused], m.weights[fused], self.field)
+        if p.fusion.reference_along_normal:
+            old, n = m.ref_position[fused], m.ref_normal[fused]
+            ref = old + np.einsum("ij,ij->i", ref - old, n)[:, None] * n
+        m.ref_position[fused] = ref
         timer.lap("inverse_warp")
 
         # VI-D: nodes for the appended surfels no node covers; the graph is rebuilt, and every
@@ -171,7 +192,8 @@ class SurfelWarpMethod:
         self.model = m
         timer.lap("extend")
         return {"fused": len(corr.surfel_index), "appended": len(added),
-                "removed": int(unstable_or_redundant.sum()), "append_candidates": added.candidates,
+                "removed": int(unstable_or_redundant.sum()), "carved": int(carved.sum()),
+                "append_candidates": added.candidates,
                 "rejected_weight": added.rejected_weight, "rejected_compressive": added.rejected_compressive,
                 "new_nodes": self.field.num_nodes - first_new}
 

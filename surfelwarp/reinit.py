@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .alignment import Alignment, AlignmentParams, model_support
 from .observation import CameraObservation
 from .se3 import invert, transform_points
 
@@ -36,6 +37,12 @@ class ReinitParams:
     misalignment_ratio: float = 2.0
     # Share of the valid depth pixels appended in a frame above which it counts as "many".
     appended_fraction: float = 0.05
+    # Beside the RMS (alignment.py): a frame is also misaligned when more than this share of the
+    # model points that should be visible have no depth support (the model slid or left the
+    # surface), and the depth is unexplained when more than this share of its valid pixels has
+    # no model point near (besides many appended).
+    unsupported_fraction: float = 0.15
+    unexplained_fraction: float = 0.05
     consecutive_frames: int = 3          # "for several continuous frames"
     min_interval_frames: int = 10        # frames between two triggered reinitialisations
     every_frames: int = 0                # also every N frames since the last one (0: never)
@@ -59,7 +66,7 @@ class ReinitTrigger:
         self.since = 0              # frames since the reference was (re)built
         self.history: list[float] = []   # every finite data RMS of the run (kept across resets)
 
-    def update(self, data_rmse_m: float, appended: int, valid_pixels: int) -> bool:
+    def update(self, data_rmse_m: float, appended: int, valid_pixels: int, alignment: Alignment | None = None) -> bool:
         p = self.params
         self.since += 1
         typical = float(np.percentile(self.history, 10)) if self.history else 0.0
@@ -67,7 +74,14 @@ class ReinitTrigger:
             self.history.append(float(data_rmse_m))
         misaligned = not np.isfinite(data_rmse_m) or data_rmse_m > max(p.misalignment_rmse_m,
                                                                        p.misalignment_ratio * typical)
-        bad = misaligned and appended > p.appended_fraction * max(valid_pixels, 1)
+        unexplained = appended > p.appended_fraction * max(valid_pixels, 1)
+        if alignment is not None:
+            misaligned |= alignment.unsupported_fraction > p.unsupported_fraction
+            unexplained |= alignment.unexplained_fraction > p.unexplained_fraction
+        # A struggle starts with a misaligned frame whose depth the model cannot explain and lasts
+        # while the misalignment does: the unexplained share hovers about its threshold as
+        # appended surfels explain last frame's depth, and must not restart the count.
+        bad = misaligned and (unexplained or self.struggling > 0)
         self.struggling = self.struggling + 1 if bad else 0
         triggered = self.struggling >= p.consecutive_frames and self.since >= p.min_interval_frames
         periodic = p.every_frames > 0 and self.since >= p.every_frames
@@ -83,28 +97,7 @@ def unsupported_mask(live_position: np.ndarray, live_normal: np.ndarray, T_camer
     T = invert(np.asarray(T_camera_to_world, np.float64))
     p = transform_points(T, np.asarray(live_position, np.float32))
     n = np.asarray(live_normal, np.float32) @ T[:3, :3].T.astype(np.float32)
-    intr = obs.intrinsics
-    h, w = obs.valid.shape
-    z = p[:, 2]
-    front = z > 1e-3
-    safe_z = np.where(front, z, 1.0)
-    col = np.rint(intr.fx * p[:, 0] / safe_z + intr.cx).astype(np.int64)
-    row = np.rint(intr.fy * p[:, 1] / safe_z + intr.cy).astype(np.int64)
-    m = params.image_margin_px
-    facing = np.einsum("ij,ij->i", n, p) < 0
-    inside = front & facing & (col >= m) & (col < w - m) & (row >= m) & (row < h - m)
-    j = np.flatnonzero(inside)
-    row, col, pj = row[j], col[j], p[j]
-
-    observed = obs.depth_m[row, col]
-    occluded = (observed > 0) & (observed < pj[:, 2] - params.occlusion_margin_m)
-    supported = np.zeros(len(j), bool)
-    r, max_d2 = params.support_window_px, params.support_distance_m ** 2
-    for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            y, x = np.clip(row + dy, 0, h - 1), np.clip(col + dx, 0, w - 1)
-            d = obs.vertex_map[y, x] - pj
-            supported |= obs.valid[y, x] & (np.einsum("ij,ij->i", d, d) <= max_d2)
-    drop = np.zeros(len(live_position), bool)
-    drop[j] = ~occluded & ~supported
-    return drop
+    judged, supported = model_support(p, n, obs.depth_m, obs.vertex_map, obs.valid, obs.intrinsics,
+                                      AlignmentParams(params.support_distance_m, params.support_window_px,
+                                                      params.occlusion_margin_m, params.image_margin_px))
+    return judged & ~supported

@@ -11,8 +11,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .anchor import AnchorParams, NodeAnchors, node_depth_m
+from .anchor import AnchorParams, NodeAnchors, follow_motion, node_depth_m
 from .camera import Intrinsics
+from .degeneracy import HeldDirections
 from .hierarchy import Hierarchy, HierarchyParams, build_hierarchy, with_hierarchy
 from .nonrigid import NonRigidParams, NonRigidResult, solve_nonrigid
 from .observation import CameraObservation
@@ -21,8 +22,15 @@ from .se3 import fit_rigid, invert
 from .warp_field import WarpField, to_local
 
 
+CAMERAS = ("moving", "static")
+
+
 @dataclass(frozen=True)
 class TrackingParams:
+    # 'moving': the camera pose is estimated; 'static': it stays the identity and every motion
+    # is the warp field's (rigid ICP then only gives the solve a second start, the scene's
+    # common motion).
+    camera: str = "moving"
     rigid: RigidParams = field(default_factory=RigidParams)
     nonrigid: NonRigidParams = field(default_factory=NonRigidParams)
     # Start rigid ICP from a constant-velocity prediction. Off by default: on deforming scenes
@@ -37,6 +45,13 @@ class TrackingParams:
     # k-nearest-node graph (Eq. 10), or on top of it with hierarchy.keep_graph; off: the graph.
     hierarchy: HierarchyParams = field(default_factory=HierarchyParams)
     anchor: AnchorParams = field(default_factory=AnchorParams)   # weight 0: off (the papers' solve)
+    # Rigid ICP weighs the model surface skinned to released (moving) nodes this much against
+    # the anchored (still) surface: the parts that hold still decide the camera's motion, and a
+    # bending limb no longer pushes it. Everything moving: all weigh alike, as without anchors.
+    released_rigid_weight: float = 0.05
+    # Below this share of still (anchored) surface in view there is no evidence of the camera's
+    # motion: it is held, and rigid ICP's motion is the scene's (as with a static camera).
+    min_still_share: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -49,9 +64,12 @@ class SurfelSet:
 
 
 def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None,
-                        rest_points: np.ndarray | None = None) -> tuple[WarpField, np.ndarray]:
+                        rest_points: np.ndarray | None = None,
+                        held: HeldDirections | None = None) -> tuple[WarpField, np.ndarray]:
     """Split W = A o W' with A the rigid motion best fitting the nodes' displacements
-    (weighted by node_weights, if given) from rest_points (default: the nodes themselves).
+    (weighted by node_weights, if given) from rest_points (default: the nodes themselves),
+    without its components along the `held` directions (they stay in the field: the camera does
+    not move where the data cannot say).
 
     DQB commutes with a common left factor, so W' = A^-1 o W exactly. Without this, rigid
     tracking error that the non-rigid solve absorbs would stay in the warp field forever and
@@ -61,6 +79,8 @@ def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None
     transforms.
     """
     A = fit_rigid(field.nodes if rest_points is None else rest_points, field.live_nodes(), node_weights)
+    if held is not None:
+        A = held.project(A)
     G = invert(A) @ field.global_transforms()
     return field.with_transforms(to_local(G, field.nodes)), A
 
@@ -75,18 +95,56 @@ class Tracker:
         self.tree: Hierarchy | None = None    # the deformation tree of the last solve, if enabled
         self._tree_nodes: np.ndarray | None = None
         self.anchors: NodeAnchors | None = None   # of the last solved field, if anchors are on
+        self._T_previous = self._T_guess = np.eye(4)
+        self._scene_motion: np.ndarray | None = None   # ICP's motion when it is not the camera's
+        self._held: HeldDirections | None = None       # directions ICP did not move the camera along
+        self._camera_moves = params.camera == "moving"  # this frame: still surface to tell its motion
 
-    def rigid(self, model_vertex: np.ndarray, model_normal: np.ndarray, obs: CameraObservation) -> RigidResult:
-        """Rigid ICP of the observation to world-frame model maps drawn at the current pose;
-        the pose is updated (held if ICP found too few pairs)."""
+    def stillness(self, knn: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """(N,) how still each point is (0-1), given its nodes and weights (N, k) in the last
+        solved field: its skinning over the nodes' stillness (NodeAnchors; 1 without anchors;
+        nodes born since are still)."""
+        if self.anchors is None or self.params.anchor.weight <= 0:
+            return np.ones(len(knn), np.float32)
+        node = self.anchors.still_weights()
+        knn = np.asarray(knn)
+        still = np.where(knn < len(node), node[np.minimum(knn, len(node) - 1)], 1.0)
+        return np.einsum("nk,nk->n", np.asarray(weights, np.float32), still.astype(np.float32))
+
+    def stillness_map(self, index_map: np.ndarray, knn: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """(H, W) stillness of a model map whose pixels show the points `index_map` (-1: none,
+        NaN in the map) of the skinning knn/weights."""
+        hit = index_map >= 0
+        out = np.full(index_map.shape, np.nan, np.float32)
+        out[hit] = self.stillness(knn[index_map[hit]], weights[index_map[hit]])
+        return out
+
+    def rigid(self, model_vertex: np.ndarray, model_normal: np.ndarray, obs: CameraObservation,
+              stillness: np.ndarray | None = None) -> RigidResult:
+        """Rigid ICP of the observation to world-frame model maps drawn at the current pose.
+        With a stillness map (stillness_map), the still surface leads (released_rigid_weight);
+        with too little of it in view (min_still_share), or a static camera, the pose is held
+        and ICP's motion is kept as the scene's, the non-rigid solve's second start. The pose
+        is also held if ICP found too few pairs."""
         p = self.params
         self._T_previous = self.T_camera_to_world
         self._T_guess = self.T_camera_to_world @ self._camera_velocity if p.predict_motion else self.T_camera_to_world
-        result = rigid_icp(model_vertex, model_normal, self.T_camera_to_world, obs, self._T_guess, p.rigid)
-        if np.isfinite(result.rmse_m):
-            self.T_camera_to_world = result.T_camera_to_world
-        else:
+        self._scene_motion = None
+        weight, share = None, 1.0
+        if stillness is not None and np.nanmin(stillness, initial=1.0) < 1.0:
+            share = float(np.nanmean(stillness))
+            floor = p.released_rigid_weight
+            weight = np.where(np.isnan(stillness), 0.0, floor + (1.0 - floor) * stillness).astype(np.float32)
+        result = rigid_icp(model_vertex, model_normal, self.T_camera_to_world, obs, self._T_guess, p.rigid,
+                           model_weight_map=weight)
+        self._held, self._camera_moves = None, p.camera == "moving" and share >= p.min_still_share
+        if not np.isfinite(result.rmse_m):
             self._T_guess = self._T_previous
+        elif self._camera_moves:
+            self.T_camera_to_world, self._held = result.T_camera_to_world, result.held
+        else:
+            self._scene_motion = self.T_camera_to_world @ invert(result.T_camera_to_world)
+            self._T_guess = self.T_camera_to_world
         return result
 
     def nonrigid(self, field: WarpField, surfels: SurfelSet, obs: CameraObservation) -> tuple[WarpField, NonRigidResult]:
@@ -100,14 +158,24 @@ class Tracker:
         if self.params.anchor.weight > 0:
             self.anchors = self.anchors.follow(field) if self.anchors is not None else NodeAnchors.at_rest(field)
             anchor = self.anchors.term(self.params.anchor, node_depth_m(field, self.T_camera_to_world),
-                                       solve_field.num_nodes)
+                                       solve_field.num_nodes, self._held)
         solved, result = solve_nonrigid(solve_field, *model, *depth, self.T_camera_to_world, self.params.nonrigid,
-                                        anchor)
-        if not result.converged and not np.array_equal(self.T_camera_to_world, self._T_guess):
+                                        anchor, obs.beyond)
+        M = self._scene_motion
+        if M is not None and (not result.converged or result.correspondences < 0.8 * len(surfels.positions)):
+            # The scene's rigid motion by ICP, tried as a second start: a fast object needs it,
+            # a surface whose shape travels across it (waves) is better off without.
+            moved = field.with_transforms(follow_motion(field.transforms, field.nodes, M))
+            moved_solve = with_hierarchy(moved, self._hierarchy(moved), h.keep_graph) if h.enabled else moved
+            solved2, result2 = solve_nonrigid(moved_solve, *model, *depth, self.T_camera_to_world,
+                                              self.params.nonrigid, anchor, obs.beyond)
+            if result2.energy < result.energy and result2.correspondences >= 0.9 * result.correspondences:
+                solved, result = solved2, result2
+        elif not result.converged and not np.array_equal(self.T_camera_to_world, self._T_guess):
             # Rigid ICP can mistake deformation for camera motion: try the solve from the
             # starting pose too and keep the better fit (with about as many pairs).
             solved2, result2 = solve_nonrigid(solve_field, *model, *depth, self._T_guess, self.params.nonrigid,
-                                              anchor)
+                                              anchor, obs.beyond)
             if result2.energy < result.energy and result2.correspondences >= 0.9 * result.correspondences:
                 solved, result, self.T_camera_to_world = solved2, result2, self._T_guess
         if result.released is not None:
@@ -129,7 +197,7 @@ class Tracker:
         p = self.params
         anchors = self.anchors if p.anchor.weight > 0 and self.anchors is not None \
             and self.anchors.nodes is field.nodes else None
-        if p.factor_rigid_motion:
+        if p.factor_rigid_motion and self._camera_moves:
             support, rest = None, None
             if p.factor_by_support and result is not None and result.node_support is not None:
                 support = result.node_support[:field.num_nodes]
@@ -141,7 +209,7 @@ class Tracker:
                     # The motion that returns the anchored nodes to rest is the camera's; fitted
                     # to all, the moving parts would drag the pose and the anchored nodes along.
                     support, rest = held, field.nodes + anchors.rest[:, :3, 3]
-            field, A = factor_rigid_motion(field, support, rest)
+            field, A = factor_rigid_motion(field, support, rest, self._held)
             self.T_camera_to_world = invert(A) @ self.T_camera_to_world
         if anchors is not None:
             self.anchors = anchors.settle(field, node_depth_m(field, self.T_camera_to_world), p.anchor)

@@ -3,7 +3,8 @@ the solve under a pose error, nodes out of the solve following the common motion
 following the field's nodes, and factoring the camera motion out of the anchored nodes."""
 import numpy as np
 
-from surfelwarp.anchor import AnchorParams, AnchorTerm, NodeAnchors, anchor_residuals, deviation_m, follow_motion
+from surfelwarp.anchor import (AnchorParams, AnchorTerm, NodeAnchors, anchor_residuals, deviation_m, follow_motion,
+                               seen_deviation_m, seen_directions)
 from surfelwarp.camera import axial_noise_sigma_m
 from surfelwarp.nonrigid import anchor_energy, anchor_terms, apply_update, turn_about
 from surfelwarp.se3 import se3_exp
@@ -141,6 +142,37 @@ def test_the_solve_releases_moving_nodes_and_holds_the_still_ones():
     held, _ = solve_nonrigid(prob.field, prob.points, prob.normals, prob.knn, prob.weights, *prob.maps,
                              INTR, T_CW, anchor=stiff)
     assert prob.error(held).mean() > 5 * err.mean()
+
+
+def test_seen_directions_of_a_plane_a_cylinder_and_a_ball():
+    """Known answers: pairs on a plane see its normal only, on a cylinder all but its axis, on a
+    ball every direction; a node without pairs sees none. The release distance then counts a
+    slide along the plane as nothing and a move along its normal in full."""
+    rng = np.random.default_rng(3)
+    c = 600
+    ball = rng.normal(size=(c, 3))
+    angle = rng.uniform(0, 2 * np.pi, c)
+    normals = np.concatenate([np.tile([0.0, 0.0, 1.0], (c, 1)),
+                              np.stack([np.cos(angle), np.sin(angle), np.zeros(c)], 1),
+                              ball / np.linalg.norm(ball, axis=1, keepdims=True)])
+    knn = np.repeat([[0, 0], [1, 1], [2, 2]], c, axis=0)       # node 3 has no pairs
+    weights = rng.uniform(0.1, 1.0, (3 * c, 2))
+    seen = seen_directions(4, knn, weights, normals)
+    np.testing.assert_allclose(seen[0], np.diag([0.0, 0.0, 1.0]), atol=1e-12)
+    np.testing.assert_allclose(seen[1], np.diag([1.0, 1.0, 0.0]), atol=0.15)
+    np.testing.assert_allclose(seen[2], np.eye(3), atol=0.2)
+    np.testing.assert_array_equal(seen[3], 0.0)
+    for e in seen[:3]:
+        assert np.isclose(np.linalg.eigvalsh(e)[-1], 1.0)
+    sigma = 0.02
+    rest = np.tile(np.eye(4), (4, 1, 1))
+    slide, lift = rest.copy(), rest.copy()
+    slide[:, :3, 3] = [0.01, -0.02, 0.0]
+    lift[:, :3, 3] = [0.0, 0.0, 0.01]
+    assert seen_deviation_m(slide, rest, sigma, seen)[0] < 1e-9
+    np.testing.assert_allclose(seen_deviation_m(lift, rest, sigma, seen)[[0, 2]], 0.01, rtol=0.2)
+    np.testing.assert_allclose(deviation_m(slide, rest, sigma), np.hypot(0.01, 0.02))
+    assert seen_deviation_m(slide, rest, sigma, seen)[3] == 0.0
 
 
 def test_nodes_outside_the_solve_follow_the_common_motion():

@@ -127,6 +127,12 @@ def test_ground_truth_as_a_run_scores_perfectly_and_shifts_give_known_errors(she
     assert avg["moving_points"] == 20000 and abs(avg["epe_moving_mean_mm"] - avg["epe_mean_mm"]) < 1e-9
     assert avg["precision_5mm_pct"] == 100 and avg["fscore_10mm_pct"] > 99
     assert avg["epe_under_1cm_pct"] == 100
+    assert avg["far_2cm_pct"] == 0 and avg["depth_explained_1cm_pct"] > 99
+
+    # A model that left the surface by 2.5 cm: every point far, no depth explained.
+    write_run(tmp_path / "left", gt, [0, 3, 5], live(shift_mm=25.0))
+    avg = evaluate.evaluate(tmp_path / "left", seq)["average"]
+    assert avg["far_2cm_pct"] == 100 and avg["depth_explained_1cm_pct"] < 1
 
     # A tracker one frame behind: on the surface (accuracy ~0 only where the sheet is still)
     # but with the true motion of one frame as its end-point error.
@@ -185,6 +191,7 @@ def test_moving_camera_and_trajectory_error(tmp_path):
                                                        at(gt, 0, face, bary)), camera_to_world=bad)
     traj = evaluate.evaluate(tmp_path / "run", seq)["trajectory"]
     assert abs(traj["ate_cm"] - np.sqrt(4 / 5)) < 1e-6 and traj["ate_aligned_cm"] < traj["ate_cm"]
+    assert abs(traj["max_translation_error_mm"] - 10.0) < 1e-6
     assert traj["rotation_error_deg"] < 1e-6
 
 

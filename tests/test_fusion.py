@@ -7,7 +7,8 @@ import pytest
 from surfelwarp import fusion
 from surfelwarp.camera import Intrinsics
 from surfelwarp.errors import GLUnavailableError
-from surfelwarp.fusion import FusionParams, find_correspondences, fuse, removal_mask, unmatched_depth_pixels
+from surfelwarp.fusion import (FusionParams, find_correspondences, fuse, removal_mask,
+                               unmatched_depth_pixels)
 from surfelwarp.gl.context import gl_context
 from surfelwarp.gl.index_map import FusionMaps, render_index_map
 from surfelwarp.observation import preprocess
@@ -300,3 +301,29 @@ def test_distance_gate_follows_the_axial_noise():
     sigma = 0.0012 + 0.0019 * (np.array([1.5, 2.5]) - 0.4) ** 2
     np.testing.assert_allclose(gate, [0.01, 0.01, *(3 * sigma)], rtol=1e-6)
     assert (fusion.distance_gate_m(np.array([2.5]), FusionParams(distance_noise_sigmas=0)) == np.float32(0.01)).all()
+
+
+def test_covered_pixels_are_not_appended(gl, obs):
+    """A depth pixel whose own surfel fails the normal gate, or whose surfel sits one pixel
+    over, is covered: not new surface. A surfel facing the other way (the back of a thin
+    object) or beyond the distance gate does not cover it."""
+    model = model_from(obs)
+    nothing = np.zeros(obs.valid.shape, bool)
+    steep = with_live(model, normal=tilted(model.live_normal.astype(np.float64), np.deg2rad(60)))
+    maps = render(steep)
+    assert len(find_correspondences(maps, obs, steep.confidence).surfel_index) == 0
+    assert not unmatched_depth_pixels(obs, nothing, maps).any()
+    assert unmatched_depth_pixels(obs, nothing).sum() == obs.num_valid          # without the maps: all
+    back = with_live(model, normal=-model.live_normal)
+    assert unmatched_depth_pixels(obs, nothing, render(back)).sum() > 0.99 * obs.num_valid
+    far = with_live(model, along_rays(model, 0.05))
+    assert unmatched_depth_pixels(obs, nothing, render(far)).sum() > 0.99 * obs.num_valid
+    # Every other surfel dropped (a stretched model): the neighbours' surfels cover the gaps;
+    # with coverage_px = 0 only a pixel's own surfels count.
+    sparse = model.select(np.arange(len(model)) % 2 == 0)
+    corr = find_correspondences(render(sparse), obs, sparse.confidence)
+    _, fused = fuse(sparse, T_CAM, obs, corr, time=1)
+    assert unmatched_depth_pixels(obs, fused).sum() > 0.3 * obs.num_valid
+    assert unmatched_depth_pixels(obs, fused, render(sparse)).sum() < 0.02 * obs.num_valid
+    own = unmatched_depth_pixels(obs, fused, render(sparse), FusionParams(coverage_px=0))
+    assert own.sum() > 0.3 * obs.num_valid

@@ -143,14 +143,17 @@ def test_bad_config_from_the_cli_exits_2_and_writes_nothing(release, tmp_path):
 
 def test_rest_anchors_keep_a_static_scene_from_drifting(tmp_path):
     """A still life seen by an orbiting camera: under the k-nearest-node graph alone (the
-    papers' solve, anchors off) the field slowly bends along the wide bends the graph barely
-    resists, and the pose drifts with it. Rest anchors (the default) hold the nodes nothing
-    moves; DynamicFusion's tree on top of the graph (tracking.hierarchy.keep_graph) resists the
-    bends."""
+    papers' pipeline: anchors off, rigid ICP by least squares over every pixel, no free-space
+    term, appending and fusion as in the paper) the field slowly bends along the wide bends
+    the graph barely resists, and the pose drifts with it. Rest anchors (the default) hold the nodes nothing moves; DynamicFusion's
+    tree on top of the graph (tracking.hierarchy.keep_graph) resists the bends."""
     seq = synth.generate("orbit", tmp_path / "seq", frames=40, size=(320, 240))
     off = "[tracking.anchor]\nweight = 0.0\n"
     graph, tree = tmp_path / "graph.toml", tmp_path / "tree.toml"
-    graph.write_text(off)
+    graph.write_text(off + "[tracking]\nreleased_rigid_weight = 1.0\n[tracking.rigid]\nmin_eigen_ratio = 0.0\n"
+                           "weak_eigen_ratio = 0.0\n[tracking.nonrigid.silhouette]\nweight = 0.0\n"
+                           "[fusion]\ncarve_beyond_m = 1e9\nappend_only_uncovered = false\n"
+                           "reference_along_normal = false\n")
     tree.write_text(off + "[tracking.hierarchy]\nenabled = true\nkeep_graph = true\n")
     ate = {}
     for name, flags in (("graph", ("--config", graph)), ("anchored", ()), ("tree", ("--config", tree))):

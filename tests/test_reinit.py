@@ -31,6 +31,14 @@ def test_misalignment_with_many_appended_triggers_after_consecutive_frames():
     assert fired[0] == 12 + 3          # the third consecutive struggling frame
 
 
+def test_a_struggle_lasts_while_misaligned_though_the_depth_is_explained_again():
+    # Appending explains last frame's depth, so "many appended" flickers during a struggle; the
+    # misalignment is what lasts. Without it the struggle ends.
+    good = [(0.0004, 100)] * 12
+    assert run_trigger(ReinitTrigger(ReinitParams()), good + [(0.0015, 800), (0.0015, 100), (0.0015, 800)]) == [15]
+    assert run_trigger(ReinitTrigger(ReinitParams()), good + [(0.0015, 800), (0.0004, 100), (0.0015, 800)]) == []
+
+
 def test_a_long_struggle_does_not_raise_the_bar():
     trigger = ReinitTrigger(ReinitParams())
     fired = []
