@@ -714,8 +714,9 @@ def _silhouette(free_space: FreeSpace | None, live: np.ndarray, live_n: np.ndarr
 def _release(field, pattern, upper, g, free, anchor, support, seen, params) -> tuple[np.ndarray, np.ndarray]:
     """(M,) anchored nodes the data and regulariser alone would move in one step farther than
     their release distance from rest, measured with the metric seen (M, 3, 3) (the directions
-    their pairs see, anchor.py; None: every direction alike), and the common motion G (4, 4) the rest follows: the one the still supported
-    nodes share (identity unless anchor.common_motion)."""
+    their pairs see, anchor.py; None: every direction alike), and the common motion G (4, 4)
+    the rest follows: the one the still supported nodes share (identity unless
+    anchor.common_motion)."""
     stepped = apply_update(field, _solve_step(pattern, upper, g, free, params)[0]).transforms
     anchored = anchor.mu > 0
     G = np.eye(4)
@@ -787,8 +788,8 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
                 solved = replace(anchor, mu=anchor.mu * free)
                 support = np.bincount(knn[idx].ravel(), weights[idx].ravel(), minlength=current.num_nodes)
                 u = anchor.release_unseen_weight
-                seen = None if u >= 1 else \
-                    (1 - u) * seen_directions(current.num_nodes, knn[idx], weights[idx], corr.normals) + u * np.eye(3)
+                seen = None if u >= 1 else (1 - u) * seen_directions(
+                    current.num_nodes, knn[idx], weights[idx], corr.normals) + u * np.eye(3)
                 released, G = _release(current, pattern, upper, g, free, solved, support, seen, params)
                 held = replace(solved, mu=np.where(released, 0.0, solved.mu))
                 total += anchor_energy(current, held, G) - anchor_energy(current, anchor)

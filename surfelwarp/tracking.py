@@ -159,24 +159,29 @@ class Tracker:
             self.anchors = self.anchors.follow(field) if self.anchors is not None else NodeAnchors.at_rest(field)
             anchor = self.anchors.term(self.params.anchor, node_depth_m(field, self.T_camera_to_world),
                                        solve_field.num_nodes, self._held)
-        solved, result = solve_nonrigid(solve_field, *model, *depth, self.T_camera_to_world, self.params.nonrigid,
-                                        anchor, obs.beyond)
+
+        def solve(start: WarpField, T_camera_to_world: np.ndarray) -> tuple[WarpField, NonRigidResult]:
+            return solve_nonrigid(start, *model, *depth, T_camera_to_world, self.params.nonrigid, anchor, obs.beyond)
+
+        def fits_better(second: NonRigidResult) -> bool:
+            """A second start's fit wins with a lower energy over about as many pairs."""
+            return second.energy < result.energy and second.correspondences >= 0.9 * result.correspondences
+
+        solved, result = solve(solve_field, self.T_camera_to_world)
         M = self._scene_motion
         if M is not None and (not result.converged or result.correspondences < 0.8 * len(surfels.positions)):
             # The scene's rigid motion by ICP, tried as a second start: a fast object needs it,
             # a surface whose shape travels across it (waves) is better off without.
             moved = field.with_transforms(follow_motion(field.transforms, field.nodes, M))
             moved_solve = with_hierarchy(moved, self._hierarchy(moved), h.keep_graph) if h.enabled else moved
-            solved2, result2 = solve_nonrigid(moved_solve, *model, *depth, self.T_camera_to_world,
-                                              self.params.nonrigid, anchor, obs.beyond)
-            if result2.energy < result.energy and result2.correspondences >= 0.9 * result.correspondences:
+            solved2, result2 = solve(moved_solve, self.T_camera_to_world)
+            if fits_better(result2):
                 solved, result = solved2, result2
         elif not result.converged and not np.array_equal(self.T_camera_to_world, self._T_guess):
             # Rigid ICP can mistake deformation for camera motion: try the solve from the
-            # starting pose too and keep the better fit (with about as many pairs).
-            solved2, result2 = solve_nonrigid(solve_field, *model, *depth, self._T_guess, self.params.nonrigid,
-                                              anchor, obs.beyond)
-            if result2.energy < result.energy and result2.correspondences >= 0.9 * result.correspondences:
+            # starting pose too.
+            solved2, result2 = solve(solve_field, self._T_guess)
+            if fits_better(result2):
                 solved, result, self.T_camera_to_world = solved2, result2, self._T_guess
         if result.released is not None:
             self.anchors = self.anchors.release(result.released)

@@ -145,8 +145,9 @@ def test_rest_anchors_keep_a_static_scene_from_drifting(tmp_path):
     """A still life seen by an orbiting camera: under the k-nearest-node graph alone (the
     papers' pipeline: anchors off, rigid ICP by least squares over every pixel, no free-space
     term, appending and fusion as in the paper) the field slowly bends along the wide bends
-    the graph barely resists, and the pose drifts with it. Rest anchors (the default) hold the nodes nothing moves; DynamicFusion's
-    tree on top of the graph (tracking.hierarchy.keep_graph) resists the bends."""
+    the graph barely resists, and the pose drifts with it. Rest anchors (the default) hold the
+    nodes nothing moves; DynamicFusion's tree on top of the graph
+    (tracking.hierarchy.keep_graph) resists the bends."""
     seq = synth.generate("orbit", tmp_path / "seq", frames=40, size=(320, 240))
     off = "[tracking.anchor]\nweight = 0.0\n"
     graph, tree = tmp_path / "graph.toml", tmp_path / "tree.toml"
