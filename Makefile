@@ -7,7 +7,7 @@ SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # Debian's headless EGL + Mesa software rasteriser (llvmpipe); no GPU or display needed.
 EGL_PACKAGES := libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri
 
-.PHONY: demo test setup egl clean
+.PHONY: demo test test-fast setup egl clean
 
 setup: $(STAMP) egl
 
@@ -21,10 +21,10 @@ $(STAMP): pyproject.toml | $(PY)
 
 # Installs the system libraries only when a headless GL context cannot be made.
 egl: $(STAMP)
-	@$(PY) -c "from surfelwarp.gl.context import gl_context; gl_context()" 2>/dev/null || { \
+	@$(PY) -c "from surfelwarp.render.context import gl_context; gl_context()" 2>/dev/null || { \
 	  echo "Installing EGL/Mesa system libraries: $(EGL_PACKAGES)"; \
 	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq $(EGL_PACKAGES) >/dev/null; \
-	  $(PY) -c "from surfelwarp.gl.context import gl_context; gl_context()"; }
+	  $(PY) -c "from surfelwarp.render.context import gl_context; gl_context()"; }
 
 demo: setup
 	$(PY) -m surfelwarp synth sheet --out $(DEMO)/sheet --frames 40
@@ -34,6 +34,10 @@ demo: setup
 
 test: setup
 	$(PY) -m pytest -q
+
+# Everything but the end-to-end runs (under a minute).
+test-fast: setup
+	$(PY) -m pytest -q -m "not slow"
 
 clean:
 	rm -rf $(VENV) build

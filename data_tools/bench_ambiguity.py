@@ -19,9 +19,12 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-from surfelwarp import alignment, nonrigid, pipeline, rigid_icp, silhouette
-from surfelwarp.observation import preprocess
-from surfelwarp.sequence import open_sequence
+from surfelwarp.io.sequence import open_sequence
+from surfelwarp.methods.surfelwarp import pipeline
+from surfelwarp.preprocess import preprocess
+from surfelwarp.tracking import gauss_newton, rigid_icp
+from surfelwarp.tracking import free_space as silhouette
+from surfelwarp.tracking.terms import rest_anchors
 
 from .synth import _size, generate
 
@@ -57,13 +60,13 @@ def measure(scene: str, frames: int, size: tuple[int, int], out: Path) -> tuple[
         _wrap(silhouette.FreeSpace, "__init__", "free space: distance transforms", spent),
         _wrap(silhouette.FreeSpace, "residuals", "free space: residuals", spent),
         _wrap(silhouette.FreeSpace, "seen_through", "carving", spent),
-        _wrap(nonrigid, "measure", "misalignment fractions", spent),
+        _wrap(gauss_newton, "measure", "misalignment fractions", spent),
         _wrap(pipeline, "unmatched_depth_pixels", "coverage before appending", spent),
         # The second ICP run only happens for weak directions (its ratio argument).
         _wrap(rigid_icp, "_align", "rigid ICP: weak directions held", spent,
               keep=lambda a: a[4] == rigid_icp.RigidParams().weak_eigen_ratio),
         _wrap(rigid_icp, "_median_residual", "rigid ICP: weak directions held", spent),
-        _wrap(nonrigid, "seen_directions", "release along seen directions", spent),
+        _wrap(rest_anchors, "seen_directions", "release along seen directions", spent),
     ]
     per_part, totals = defaultdict(list), []
     try:

@@ -47,8 +47,8 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from surfelwarp.errors import InputError
-from surfelwarp.ply import read_ply, write_atomic
-from surfelwarp.sequence import open_sequence
+from surfelwarp.io.ply import read_ply, write_atomic
+from surfelwarp.io.sequence import open_sequence
 
 from . import sceneflow
 from .geometry import TriangleMesh

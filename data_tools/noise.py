@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from surfelwarp.camera import Intrinsics
+from surfelwarp.geometry.camera import Intrinsics
 
 
 @dataclass(frozen=True)

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from surfelwarp.camera import Intrinsics
-from surfelwarp.gl.context import gl_context
-from surfelwarp.gl.shaders import load_program
+from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.render.context import gl_context
+from surfelwarp.render.shaders import load_program
 
 from .meshes import vertex_normals
 

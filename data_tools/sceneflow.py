@@ -12,9 +12,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from surfelwarp.camera import Intrinsics
 from surfelwarp.errors import InputError
-from surfelwarp.ply import read_ply
+from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.io.ply import read_ply
 
 _NAME = re.compile(r"(.+)_(\d+)_(\d+)\.sflow")
 

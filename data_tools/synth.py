@@ -34,9 +34,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from surfelwarp.camera import Intrinsics
 from surfelwarp.errors import InputError
-from surfelwarp.se3 import invert
+from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.geometry.se3 import invert
 
 from .meshes import edges, vertex_normals
 from .noise import kinect_noise

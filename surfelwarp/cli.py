@@ -1,11 +1,12 @@
-"""`surfelwarp` command line: run, synth, eval, compare."""
+"""`surfelwarp` command line: run, compare, synth, eval (argparse only; the work is elsewhere)."""
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
-from .errors import GLUnavailableError, InputError
+from surfelwarp.errors import GLUnavailableError, InputError
 
 METHODS = ("observe", "surfelwarp", "dynamicfusion")
 
@@ -17,10 +18,17 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _add_run_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("input", type=Path, help="sequence folder (any layout of CONTRACT.md)")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--method", choices=METHODS, default="surfelwarp")
+def _frame_list(text: str) -> list[int]:
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected frame numbers separated by commas, got {text!r}") from None
+
+
+def _add_input_arguments(p: argparse.ArgumentParser, out_help: str) -> None:
+    """The flags `run` and `compare` share: the input, its reading and preprocessing, the outputs."""
+    p.add_argument("input", type=Path, help="sequence folder (any layout of docs/formats.md)")
+    p.add_argument("--out", type=Path, required=True, help=out_help)
     p.add_argument("--save-every", type=_positive_int, default=10, metavar="K",
                    help="write live/frame-%%06d.ply every K processed frames (and the last)")
     p.add_argument("--intrinsics", metavar="FX,FY,CX,CY", help="override the intrinsics file")
@@ -30,38 +38,36 @@ def _add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", type=int, default=0, metavar="FRAME", help="first frame index to process")
     p.add_argument("--max-frames", type=_positive_int, default=None, metavar="N")
     p.add_argument("--no-fusion", action="store_true",
-                   help="template tracking: the first frame's surfels are tracked, never fused or extended")
-    p.add_argument("--config", type=Path, default=None, metavar="FILE",
-                   help="SurfelWarp parameters to override, TOML or JSON (see surfelwarp/config.py)")
-    p.add_argument("--camera", choices=("moving", "static"), default=None,
-                   help="'static': the camera does not move, every motion is the scene's; "
-                        "'moving' (default): its pose is estimated (config key tracking.camera)")
+                   help="SurfelWarp as template tracking: the first frame's surfels are tracked, never fused "
+                        "or extended")
     p.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
 
 
-def _with_camera(params, camera: str | None):
-    """params (with a `tracking` tree) with tracking.camera set by --camera, if given."""
-    from dataclasses import replace
-    return params if camera is None else replace(params, tracking=replace(params.tracking, camera=camera))
+def _add_run_arguments(p: argparse.ArgumentParser) -> None:
+    _add_input_arguments(p, "output folder")
+    p.add_argument("--method", choices=METHODS, default="surfelwarp")
+    p.add_argument("--config", type=Path, default=None, metavar="FILE",
+                   help="the method's parameters to override, TOML or JSON (see docs/cli.md)")
+    p.add_argument("--camera", choices=("moving", "static"), default=None,
+                   help="'static': the camera does not move, every motion is the scene's; "
+                        "'moving' (default): its pose is estimated (config key tracking.camera)")
 
 
-def cmd_run(args: argparse.Namespace) -> int:
-    from dataclasses import replace
+def _add_compare_arguments(p: argparse.ArgumentParser) -> None:
+    _add_input_arguments(p, "output folder (surfelwarp/, dynamicfusion/, report.md)")
+    p.add_argument("--voxel-size", type=float, default=None, metavar="M",
+                   help="DynamicFusion voxel size, metres (default 0.004)")
+    p.add_argument("--graph-k", type=_positive_int, default=None, metavar="K",
+                   help="both methods: regularise each node with its K nearest nodes (default 8); with "
+                        "separate parts (fingers) K nearest may link across the gap between them")
+    p.add_argument("--hierarchical", action="store_true",
+                   help="DynamicFusion regularises through its hierarchical deformation tree")
+    p.add_argument("--render-frames", type=_frame_list, default=None, metavar="F1,F2,..",
+                   help="frames whose live models are rendered as normal maps (default: up to 3 saved ones)")
 
-    from .observation import PreprocessParams
-    from .observe import ObserveMethod
-    from .run import run_sequence
-    from .sequence import open_sequence, parse_intrinsics_flag
 
-    sw_params = None
-    if args.config is not None:
-        if args.method != "surfelwarp":
-            raise InputError(args.config, "--config sets SurfelWarp parameters: use it with --method surfelwarp")
-        from .config import load_params
-        sw_params = load_params(args.config)
-    intrinsics = parse_intrinsics_flag(args.intrinsics) if args.intrinsics else None
-    seq = open_sequence(args.input, intrinsics=intrinsics, depth_scale=args.depth_scale,
-                        start=args.start, max_frames=args.max_frames)
+def _preprocess_params(args: argparse.Namespace):
+    from surfelwarp.preprocess import PreprocessParams
     params = PreprocessParams()
     if args.clip_near is not None:
         params = replace(params, clip_near_m=args.clip_near)
@@ -69,41 +75,106 @@ def cmd_run(args: argparse.Namespace) -> int:
         params = replace(params, clip_far_m=args.clip_far)
     if not 0 <= params.clip_near_m < params.clip_far_m:
         raise InputError(None, f"--clip-near {params.clip_near_m} must be >= 0 and below --clip-far {params.clip_far_m}")
+    return params
+
+
+def _intrinsics(args: argparse.Namespace):
+    from surfelwarp.io.sequence import parse_intrinsics_flag
+    return parse_intrinsics_flag(args.intrinsics) if args.intrinsics else None
+
+
+def _params(args: argparse.Namespace):
+    """The method's parameters: its defaults, --config, --camera (None: the observe method)."""
+    if args.method == "observe":
+        if args.config is not None:
+            raise InputError(args.config, "--config sets a reconstruction method's parameters: the observe "
+                                          "method has none")
+        return None
+    if args.method == "surfelwarp":
+        from surfelwarp.methods.surfelwarp.params import SurfelWarpParams as Params
+    else:
+        from surfelwarp.methods.dynamicfusion.params import DynamicFusionParams as Params
+    params = Params()
+    if args.config is not None:
+        from surfelwarp.config import load_params
+        params = load_params(args.config, params)
+    if args.camera is not None:
+        params = replace(params, tracking=replace(params.tracking, camera=args.camera))
+    return params
+
+
+def _method(args: argparse.Namespace, params, intrinsics):
+    if args.method == "surfelwarp":
+        from surfelwarp.methods.surfelwarp.pipeline import SurfelWarpMethod
+        return SurfelWarpMethod(intrinsics, params, fusion=not args.no_fusion)
+    if args.method == "dynamicfusion":
+        from surfelwarp.methods.dynamicfusion.pipeline import DynamicFusionMethod
+        return DynamicFusionMethod(intrinsics, params)
+    from surfelwarp.methods.observe import ObserveMethod
+    return ObserveMethod()
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from surfelwarp.io.sequence import open_sequence
+    from surfelwarp.run import input_config, run_sequence
+
+    params = _params(args)
+    preprocess = _preprocess_params(args)
     out = args.out
     if out.exists() and not out.is_dir():
         raise InputError(out, "output path exists and is not a folder")
-    if args.method == "surfelwarp":
-        from .pipeline import SurfelWarpMethod, SurfelWarpParams
-        sw_params = _with_camera(sw_params or SurfelWarpParams(), args.camera)
-        method = SurfelWarpMethod(seq.intrinsics, sw_params, fusion=not args.no_fusion)
-    elif args.method == "dynamicfusion":
-        from .dynamicfusion import DynamicFusionMethod, DynamicFusionParams
-        method = DynamicFusionMethod(seq.intrinsics, _with_camera(DynamicFusionParams(), args.camera))
-    else:
-        method = ObserveMethod()
-    input_config = {"layout": seq.layout, "depth_scale": seq.depth_scale, "start": args.start,
-                    "max_frames": args.max_frames, "intrinsics": {
-                        k: getattr(seq.intrinsics, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}}
-    outputs = run_sequence(seq, out, method, save_every=args.save_every, preprocess_params=params,
-                           input_config=input_config, progress=False if args.no_progress else None)
+    seq = open_sequence(args.input, intrinsics=_intrinsics(args), depth_scale=args.depth_scale,
+                        start=args.start, max_frames=args.max_frames)
+    outputs = run_sequence(seq, out, _method(args, params, seq.intrinsics), save_every=args.save_every,
+                           preprocess_params=preprocess, input_config=input_config(seq, args.start, args.max_frames),
+                           progress=False if args.no_progress else None)
     s = outputs.summary()
     print(f"{s['frames']} frames, median {s['median_frame_seconds'] * 1000:.0f} ms/frame, "
           f"peak {s['peak_rss_mb']:.0f} MB; outputs in {out}/ (live/, model.ply, metrics.json)")
     return 0
 
 
+def compare_spec(args: argparse.Namespace):
+    """The comparison's CompareSpec from its flags."""
+    from surfelwarp.methods.dynamicfusion.params import DynamicFusionParams
+    from surfelwarp.report.runner import CompareSpec
+
+    df = DynamicFusionParams()
+    if args.hierarchical:
+        df = replace(df, tracking=replace(df.tracking, hierarchy=replace(df.tracking.hierarchy, enabled=True)))
+    if args.voxel_size is not None:
+        if not args.voxel_size > 0:
+            raise InputError(None, f"--voxel-size must be positive, got {args.voxel_size}")
+        # The truncation band keeps its width in voxels (3, as the defaults 12 mm / 4 mm).
+        df = replace(df, tsdf=replace(df.tsdf, voxel_size_m=args.voxel_size, truncation_m=3 * args.voxel_size))
+    sw_field = None
+    if args.graph_k is not None:
+        df = replace(df, warp_field=replace(df.warp_field, graph_k=args.graph_k))
+        sw_field = df.warp_field
+    return CompareSpec(input=args.input, out=args.out, intrinsics=_intrinsics(args), depth_scale=args.depth_scale,
+                       start=args.start, max_frames=args.max_frames, save_every=args.save_every,
+                       preprocess=_preprocess_params(args), dynamicfusion=df, surfelwarp_warp_field=sw_field,
+                       surfelwarp_fusion=not args.no_fusion, progress=False if args.no_progress else None)
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from surfelwarp.report.compare import compare
+    report = compare(compare_spec(args), args.render_frames)
+    print(f"comparison written to {report}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="surfelwarp", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
-    run = sub.add_parser("run", help="reconstruct a depth sequence")
-    _add_run_arguments(run)
-    run.set_defaults(func=cmd_run)
-    from . import compare
+    p = sub.add_parser("run", help="reconstruct a depth sequence")
+    _add_run_arguments(p)
+    p.set_defaults(func=cmd_run)
     p = sub.add_parser("compare", help="run SurfelWarp and DynamicFusion on the same frames, write report.md")
-    compare.add_arguments(p)
-    p.set_defaults(func=compare.run)
+    _add_compare_arguments(p)
+    p.set_defaults(func=cmd_compare)
     try:
-        from .data_tools import evaluate, synth
+        from surfelwarp.data_tools import evaluate, synth
     except ImportError:
         pass
     else:
@@ -120,10 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except InputError as exc:
-        print(f"surfelwarp: error: {exc}", file=sys.stderr)
-        return 2
-    except GLUnavailableError as exc:
+    except (InputError, GLUnavailableError) as exc:
         print(f"surfelwarp: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -1,6 +1,6 @@
-"""Every SurfelWarp parameter in one frozen tree, and overriding it from a TOML or JSON file.
+"""Overriding any method's parameter tree (frozen dataclasses) from a TOML or JSON file.
 
-A config file nests tables like the tree (`surfelwarp run ... --config FILE`):
+A config file nests tables like the tree (`surfelwarp run ... --config FILE`, for either method):
 
     [fusion]
     distance_threshold_m = 0.008
@@ -10,7 +10,9 @@ A config file nests tables like the tree (`surfelwarp run ... --config FILE`):
     every_frames = 50
 
 Keys not given keep their defaults. An unknown key or a value of the wrong type is an
-InputError naming the file and the key.
+InputError naming the file and the key. A params class declares the values a string field may
+take in a `CHOICES` class attribute, and constraints between or on values in a `problems()`
+method (key -> whether it is out of range, or what is wrong with it).
 """
 from __future__ import annotations
 
@@ -18,59 +20,27 @@ import json
 import math
 import types
 import typing
-from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from dataclasses import fields, is_dataclass, replace
 from pathlib import Path
 
-from .appending import AppendParams
-from .errors import InputError
-from .fusion import FusionParams
-from .nonrigid import LINEAR_SOLVERS, ROBUST
-from .reinit import ReinitParams
-from .tracking import CAMERAS, TrackingParams
-from .warp_field import WarpFieldParams
-
-
-@dataclass(frozen=True)
-class SurfelWarpParams:
-    warp_field: WarpFieldParams = field(default_factory=WarpFieldParams)
-    tracking: TrackingParams = field(default_factory=TrackingParams)
-    fusion: FusionParams = field(default_factory=FusionParams)     # Sec. VI-A, VI-D removal
-    append: AppendParams = field(default_factory=AppendParams)     # Sec. VI-B..D appending
-    reinit: ReinitParams = field(default_factory=ReinitParams)     # Sec. VI-F
-    # Solver maps draw the stable surfels (fusion.stable_confidence = delta_stable) first.
-    # recent_draw 'fill_all': every other surfel only on pixels no stable surfel covers, so
-    # fresh surfels (carrying last frame's pose error) never occlude the stable model, while
-    # newly seen surface and the not yet stable model are tracked (a young model is all
-    # unstable: a free sheet's edges, never observed again once they overhang, left the solve
-    # and the sheet slid, EPE 61 mm against 22 mm); 'fill': only those observed within the
-    # last recent_frames frames (delta_recent, Table 1); 'with': stable and recent in one
-    # depth test.
-    recent_frames: int = 2
-    recent_draw: str = "fill_all"
-    index_map_supersample: int = 4   # Sec. VI-A: 4x4 super-sampled index map
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-
-# String parameters with a fixed set of values, by field name.
-CHOICES = {"robust": ROBUST, "linear_solver": LINEAR_SOLVERS, "recent_draw": ("fill", "fill_all", "with"), "camera": CAMERAS}
+from surfelwarp.errors import InputError
 
 
 def _bad(path, key: str, problem: str) -> InputError:
     return InputError(path, f"config key '{key}': {problem}")
 
 
-def _value(value, hint, path, key: str):
+def _value(value, hint, path, key: str, choices: dict = {}):
     """`value` checked against the type hint `hint` (float, int, bool, str, X | None, tuple[X, ...])."""
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(hint) if a is not type(None)]
-        return None if value is None and len(args) < len(typing.get_args(hint)) else _value(value, args[0], path, key)
+        return None if value is None and len(args) < len(typing.get_args(hint)) else _value(value, args[0], path, key,
+                                                                                              choices)
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
             raise _bad(path, key, f"expected a list, got {value!r}")
-        return tuple(_value(v, typing.get_args(hint)[0], path, key) for v in value)
+        return tuple(_value(v, typing.get_args(hint)[0], path, key, choices) for v in value)
     if hint is bool:
         if not isinstance(value, bool):
             raise _bad(path, key, f"expected true or false, got {value!r}")
@@ -79,8 +49,8 @@ def _value(value, hint, path, key: str):
         if not isinstance(value, str):
             raise _bad(path, key, f"expected a string, got {value!r}")
         name = key.rsplit(".", 1)[-1]
-        if name in CHOICES and value not in CHOICES[name]:
-            raise _bad(path, key, f"expected one of {', '.join(CHOICES[name])}, got {value!r}")
+        if name in choices and value not in choices[name]:
+            raise _bad(path, key, f"expected one of {', '.join(choices[name])}, got {value!r}")
         return value
     if hint in (int, float):
         ok = isinstance(value, int) if hint is int else isinstance(value, (int, float))
@@ -107,7 +77,7 @@ def override(params, table: dict, path=None, prefix: str = ""):
                 raise _bad(path, key, "expected a table of parameters")
             changes[name] = override(current, value, path, key + ".")
         else:
-            changes[name] = _value(value, hints[name], path, key)
+            changes[name] = _value(value, hints[name], path, key, getattr(type(params), "CHOICES", {}))
     try:
         return replace(params, **changes)
     except (TypeError, ValueError) as exc:
@@ -137,27 +107,20 @@ def read_table(path: Path) -> dict:
     return table
 
 
-def check(params: SurfelWarpParams, path=None) -> SurfelWarpParams:
-    """Constraints between or on values that the types do not express."""
-    rigid = params.tracking.rigid
-    problems = {
-        "tracking.rigid.iterations": len(rigid.iterations) != rigid.pyramid_levels,
-        "tracking.rigid.distance_gate_m": len(rigid.distance_gate_m) != rigid.pyramid_levels,
-        "tracking.rigid.pyramid_levels": rigid.pyramid_levels < 1,
-        "warp_field.node_radius_m": params.warp_field.node_radius_m <= 0,
-        "warp_field.k_skin": params.warp_field.k_skin < 1,
-        "warp_field.graph_k": params.warp_field.graph_k < 1,
-        "tracking.hierarchy.levels": params.tracking.hierarchy.levels < 1,
-        "tracking.hierarchy.k": params.tracking.hierarchy.k < 1,
-        "fusion.window": params.fusion.window < 1,
-        "index_map_supersample": params.index_map_supersample < 1,
-    }
+def check(params, path=None, prefix: str = ""):
+    """`params` if no class in its tree reports a problem (params.problems()), else InputError."""
+    problems = params.problems() if hasattr(params, "problems") else {}
     for key, bad in problems.items():
         if bad:
-            raise _bad(path, key, "out of range (rigid lists need one entry per pyramid level; "
-                                  "sizes and counts must be positive)")
+            raise _bad(path, prefix + key, bad if isinstance(bad, str) else
+                       "out of range (rigid lists need one entry per pyramid level; sizes and counts must be positive)")
+    for f in fields(params):
+        value = getattr(params, f.name)
+        if is_dataclass(value):
+            check(value, path, prefix + f.name + ".")
     return params
 
 
-def load_params(path: Path, base: SurfelWarpParams = SurfelWarpParams()) -> SurfelWarpParams:
+def load_params(path: Path, base):
+    """`base` (any method's parameter tree) with the file's values."""
     return check(override(base, read_table(path), path), path)

@@ -7,13 +7,20 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .errors import InputError
-from .observation import PreprocessParams, preprocess
-from .outputs import RunOutputs
-from .sequence import Sequence
+from surfelwarp.errors import InputError
+from surfelwarp.io.outputs import RunOutputs
+from surfelwarp.io.sequence import Sequence
+from surfelwarp.methods.protocol import Method
+from surfelwarp.preprocess import PreprocessParams, preprocess
 
 
-def run_sequence(seq: Sequence, out_dir: Path, method, *, save_every: int = 10,
+def input_config(seq: Sequence, start: int, max_frames: int | None) -> dict:
+    """How the input was read, for metrics.json."""
+    return {"layout": seq.layout, "depth_scale": seq.depth_scale, "start": start, "max_frames": max_frames,
+            "intrinsics": {k: getattr(seq.intrinsics, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}}
+
+
+def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: int = 10,
                  preprocess_params: PreprocessParams = PreprocessParams(), input_config: dict | None = None,
                  progress: bool | None = None) -> RunOutputs:
     """Process every frame of `seq` with `method`, writing the contract's outputs to `out_dir`.
@@ -47,9 +54,7 @@ def run_sequence(seq: Sequence, out_dir: Path, method, *, save_every: int = 10,
             bar.update(1)
             bar.set_postfix_str(f"surfels={record.surfels}", refresh=False)
         outputs.save_model(*method.model_vertices())
-        finish = getattr(method, "finish", None)   # method-specific end-of-run outputs (plots)
-        if finish is not None:
-            finish(out_dir, outputs.frames)
+        method.finish(out_dir, outputs.frames)
     except InputError as exc:
         outputs.error = str(exc)
         raise

@@ -4,7 +4,19 @@ import cv2
 import numpy as np
 import pytest
 
+# ../shared/data beside the repository (tests that need it skip when it is absent)
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def gl():
+    """A headless GL context, or the test is skipped (no EGL/Mesa on this machine)."""
+    from surfelwarp.errors import GLUnavailableError
+    from surfelwarp.render.context import gl_context
+    try:
+        return gl_context()
+    except GLUnavailableError as exc:
+        pytest.skip(str(exc))
 
 
 def shared_data(name: str) -> Path:

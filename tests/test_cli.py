@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from surfelwarp.ply import read_ply
+from surfelwarp.io.ply import read_ply
 
 from conftest import write_sequence
 

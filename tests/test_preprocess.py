@@ -1,10 +1,9 @@
 import cv2
 import numpy as np
-import pytest
 
-from surfelwarp.camera import Intrinsics
-from surfelwarp.observation import PreprocessParams, preprocess
-from surfelwarp.sequence import open_sequence
+from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.io.sequence import open_sequence
+from surfelwarp.preprocess import PreprocessParams, preprocess
 
 from conftest import shared_data
 

@@ -1,0 +1,202 @@
+"""Depth sequences on disk: layout detection, intrinsics, lazy frame reading.
+
+The four layouts of CONTRACT.md are recognised by their file names. Every frame's
+PNG header is checked when the sequence is opened, so a bad frame is reported
+before any output is written; pixels are only decoded when a frame is read.
+"""
+from __future__ import annotations
+
+import re
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from surfelwarp.errors import InputError
+from surfelwarp.geometry.camera import Intrinsics
+
+
+@dataclass(frozen=True)
+class FrameFiles:
+    index: int
+    depth: Path
+    color: Path | None = None
+    pose: Path | None = None
+    mask: Path | None = None
+
+
+@dataclass(frozen=True)
+class Layout:
+    name: str
+    depth_pattern: re.Pattern       # matched against paths relative to the sequence folder
+    intrinsics_glob: str
+    sibling: dict                   # kind -> format string of the frame index, relative path
+
+
+LAYOUTS = (
+    Layout("volumedeform", re.compile(r"frame-(\d+)\.depth\.png"), "depthIntrinsics.txt",
+           {"color": "frame-{:06d}.color.png"}),
+    Layout("7scenes", re.compile(r"frame-(\d+)\.depth\.png"), "camera-intrinsics.txt",
+           {"color": "frame-{:06d}.color.jpg", "pose": "frame-{:06d}.pose.txt"}),
+    Layout("deepdeform", re.compile(r"depth/(\d+)\.png"), "intrinsics.txt",
+           {"color": "color/{:06d}.jpg"}),
+    Layout("killingfusion", re.compile(r"depth_(\d+)\.png"), "intrinsics*.txt",
+           {"color": "color_{:06d}.png", "mask": "omask_{:06d}.png"}),
+)
+
+
+def parse_intrinsics_file(path: Path) -> Intrinsics:
+    """A 3x3 or 4x4 camera matrix, whitespace separated."""
+    try:
+        values = np.array(path.read_text().split(), dtype=np.float64)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"cannot read intrinsics file ({exc.__class__.__name__})") from None
+    except ValueError:
+        raise InputError(path, "intrinsics file does not parse: expected a 3x3 or 4x4 matrix of numbers") from None
+    if values.size not in (9, 16):
+        raise InputError(path, f"intrinsics file does not parse: expected 9 or 16 numbers, found {values.size}")
+    m = values.reshape(3, 3) if values.size == 9 else values.reshape(4, 4)
+    fx, fy, cx, cy = m[0, 0], m[1, 1], m[0, 2], m[1, 2]
+    if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
+        raise InputError(path, "intrinsics file does not parse: focal lengths must be positive numbers")
+    return Intrinsics(float(fx), float(fy), float(cx), float(cy))
+
+
+def parse_intrinsics_flag(text: str) -> Intrinsics:
+    try:
+        fx, fy, cx, cy = (float(x) for x in text.split(","))
+    except ValueError:
+        raise InputError(None, f"--intrinsics {text!r}: expected four numbers fx,fy,cx,cy") from None
+    if fx <= 0 or fy <= 0:
+        raise InputError(None, f"--intrinsics {text!r}: focal lengths must be positive")
+    return Intrinsics(fx, fy, cx, cy)
+
+
+def png_header(path: Path) -> tuple[int, int, int, int]:
+    """(width, height, bit depth, colour type) from the IHDR chunk, without decoding pixels."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(29)
+    except OSError as exc:
+        raise InputError(path, f"cannot read frame ({exc.strerror or exc.__class__.__name__})") from None
+    if len(head) < 29 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        raise InputError(path, "not a PNG file")
+    width, height, bit_depth, colour_type = struct.unpack(">IIBB", head[16:26])
+    return width, height, bit_depth, colour_type
+
+
+def _check_depth_header(path: Path, size: tuple[int, int] | None) -> tuple[int, int]:
+    width, height, bit_depth, colour_type = png_header(path)
+    if bit_depth != 16 or colour_type != 0:
+        kind = {0: "grayscale", 2: "RGB", 3: "palette", 4: "grayscale+alpha", 6: "RGBA"}.get(colour_type, "unknown")
+        raise InputError(path, f"depth PNG must be 16-bit single-channel, found {bit_depth}-bit {kind}")
+    if size is not None and (width, height) != size:
+        raise InputError(path, f"frame is {width}x{height}, but the first frame is {size[0]}x{size[1]}")
+    return width, height
+
+
+class Sequence:
+    """An opened depth sequence; frames are decoded one at a time by `frames()`."""
+
+    def __init__(self, root: Path, layout: str, intrinsics: Intrinsics, files: list[FrameFiles],
+                 depth_scale: float):
+        self.root, self.layout, self.intrinsics = root, layout, intrinsics
+        self.files, self.depth_scale = files, depth_scale
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def read_depth(self, frame: FrameFiles) -> np.ndarray:
+        """Depth in metres as float32, 0 where there is no measurement."""
+        raw = cv2.imread(str(frame.depth), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise InputError(frame.depth, "cannot decode depth PNG (file is damaged or unreadable)")
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            raise InputError(frame.depth, f"depth PNG must be 16-bit single-channel, decoded as {raw.dtype} {raw.shape}")
+        if raw.shape != (self.intrinsics.height, self.intrinsics.width):
+            raise InputError(frame.depth, f"frame is {raw.shape[1]}x{raw.shape[0]}, expected "
+                                          f"{self.intrinsics.width}x{self.intrinsics.height}")
+        return raw.astype(np.float32) / np.float32(self.depth_scale)
+
+    def read_pose(self, frame: FrameFiles) -> np.ndarray | None:
+        """Ground-truth 4x4 camera-to-world pose where the layout has one."""
+        if frame.pose is None:
+            return None
+        try:
+            pose = np.loadtxt(frame.pose, dtype=np.float64).reshape(4, 4)
+        except (OSError, ValueError):
+            raise InputError(frame.pose, "pose file does not parse: expected a 4x4 matrix") from None
+        return pose
+
+    def frames(self) -> Iterator[tuple[FrameFiles, np.ndarray]]:
+        for frame in self.files:
+            yield frame, self.read_depth(frame)
+
+
+def _match_frames(root: Path, layout: Layout) -> list[tuple[int, Path]]:
+    folder = root / "depth" if layout.depth_pattern.pattern.startswith("depth/") else root
+    if not folder.is_dir():
+        return []
+    found = []
+    for path in folder.iterdir():
+        m = layout.depth_pattern.fullmatch(path.relative_to(root).as_posix())
+        if m:
+            found.append((int(m.group(1)), path))
+    return sorted(found)
+
+
+def detect_layout(root: Path, have_intrinsics: bool) -> tuple[Layout, list[tuple[int, Path]], Path | None]:
+    """The layout whose depth files and intrinsics file are both present.
+
+    Without an intrinsics file, a layout still matches when --intrinsics was given.
+    """
+    fallback = None
+    for layout in LAYOUTS:
+        frames = _match_frames(root, layout)
+        if not frames:
+            continue
+        intrinsics_files = sorted(root.glob(layout.intrinsics_glob))
+        if intrinsics_files:
+            return layout, frames, intrinsics_files[0]
+        fallback = fallback or (layout, frames, None)
+    if fallback is not None and have_intrinsics:
+        return fallback
+    if fallback is not None:
+        raise InputError(root, f"found {fallback[0].name} depth frames but no intrinsics file "
+                               f"({fallback[0].intrinsics_glob}); pass --intrinsics fx,fy,cx,cy")
+    raise InputError(root, "matches no known sequence layout (expected frame-%06d.depth.png, "
+                           "depth/%06d.png or depth_%06d.png; see CONTRACT.md)")
+
+
+def open_sequence(path: str | Path, *, intrinsics: Intrinsics | None = None, depth_scale: float = 1000.0,
+                  start: int = 0, max_frames: int | None = None) -> Sequence:
+    """Detect the layout, read the intrinsics and check every selected frame's header.
+
+    `start` is a frame index (the number in the file name); `max_frames` bounds the count.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise InputError(root, "input sequence folder does not exist" if not root.exists() else "input is not a folder")
+    if not depth_scale > 0:
+        raise InputError(None, f"--depth-scale must be positive, got {depth_scale}")
+    layout, frames, intrinsics_path = detect_layout(root, intrinsics is not None)
+    if intrinsics is None:
+        intrinsics = parse_intrinsics_file(intrinsics_path)
+    frames = [(i, p) for i, p in frames if i >= start]
+    if max_frames is not None:
+        frames = frames[:max_frames]
+    if not frames:
+        raise InputError(root, f"no depth frames at or after --start {start}")
+    files = []
+    size = None
+    for index, depth_path in frames:
+        size = _check_depth_header(depth_path, size)
+        extra = {}
+        for kind, pattern in layout.sibling.items():
+            candidate = root / pattern.format(index)
+            extra[kind] = candidate if candidate.exists() else None
+        files.append(FrameFiles(index, depth_path, **extra))
+    return Sequence(root, layout.name, intrinsics.with_size(*size), files, depth_scale)

@@ -1,0 +1,331 @@
+"""The DynamicFusion baseline (Newcombe et al. 2015), sharing SurfelWarp's tracker.
+
+The canonical model is a TSDF volume (tsdf.py) in world coordinates; the warp field is the same
+node graph, rigid ICP and Gauss-Newton solver as SurfelWarpMethod (SurfelWarp Sec. IX compares
+against exactly such a baseline). Per frame, `DynamicFusionMethod.process` runs:
+
+    solver maps of the warped canonical mesh (previous camera) -> rigid ICP -> data points: one
+    per covered pixel, taken back to canonical space (Eq. 7) -> non-rigid GN -> warp the voxels
+    that can be fused -> projective TSDF fusion (Eq. 3-5) -> marching cubes -> extend the warp
+    field to uncovered surface (Sec. 3.4) -> warp the mesh.
+
+Blocks of voxels that provably cannot be fused this frame are not warped (voxel_blocks.py).
+The mesh extracted after fusion serves three uses: this frame's output (warped by W_t), the
+nodes' coverage test, and the next frame's data term (DynamicFusion Sec. 3.3.1 extracts it
+before the solve; it is the same mesh, so it is extracted once).
+The regulariser can use DynamicFusion's hierarchical deformation tree (tracking.hierarchy,
+deform/hierarchy.py), as the shared tracker can for SurfelWarp.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pykdtree.kdtree import KDTree
+
+from surfelwarp.deform.warp_field import WarpField, extend, inverse_warp, skin, update_skinning, warp
+from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.geometry.se3 import invert, transform_surfels
+from surfelwarp.io.outputs import FrameRecord
+from surfelwarp.io.ply import vertex_table
+from surfelwarp.methods.dynamicfusion.params import DynamicFusionParams
+from surfelwarp.methods.dynamicfusion.tsdf import TSDFVolume, extract_mesh, fuse, node_distance_weight
+from surfelwarp.methods.dynamicfusion.voxel_blocks import (VoxelBlocks, block_voxels, fusible_blocks, voxel_blocks,
+                                                          warp_points_fast)
+from surfelwarp.preprocess import CameraObservation
+from surfelwarp.render.mesh_maps import render_mesh_maps
+from surfelwarp.render.solver_maps import maps_to_world
+from surfelwarp.timing import StageTimer
+from surfelwarp.tracking.tracker import SurfelSet, Tracker
+
+
+@dataclass(frozen=True)
+class VolumeCounts:
+    """The volume and its mesh at the end of a frame (metrics.json)."""
+    voxels: int
+    observed_voxels: int            # with a fusion weight
+    voxel_size_m: float | None
+    mesh_vertices: int
+    mesh_faces: int
+    volume_bytes: int
+
+
+@dataclass(frozen=True)
+class UpdateCounts:
+    """What one frame's model update did (metrics.json)."""
+    new_nodes: int
+    fused_voxels: int
+    warped_voxels: int
+    data_points: int                # model points of the data term
+
+
+@dataclass
+class CanonicalMesh:
+    """The zero level set in world coordinates, its skinning and its current live warp."""
+    vertices: np.ndarray       # (N, 3) float32
+    normals: np.ndarray        # (N, 3) float32
+    faces: np.ndarray          # (F, 3) int32
+    knn: np.ndarray            # (N, k) int32
+    weights: np.ndarray        # (N, k) float32
+    live_vertices: np.ndarray  # (N, 3) float32, world
+    live_normals: np.ndarray
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in vars(self).values())
+
+
+class DynamicFusionMethod:
+    name = "dynamicfusion"
+
+    def __init__(self, intrinsics: Intrinsics, params: DynamicFusionParams = DynamicFusionParams()):
+        self.intrinsics, self.params = intrinsics, params
+        self.volume: TSDFVolume | None = None
+        self.field: WarpField | None = None
+        self.mesh: CanonicalMesh | None = None
+        self.voxel_knn = self.voxel_weights = self.voxel_fusion_weight = None
+        self.voxel_centres: np.ndarray | None = None   # (V, 3) float32, cached: the grid never moves
+        self.blocks: VoxelBlocks | None = None
+        self.tracker = Tracker(intrinsics, params.tracking)
+        self.reference_frame = 0
+        self.T_reference_camera_to_world = np.eye(4)
+
+    def config(self) -> dict:
+        return self.params.to_dict()
+
+    @property
+    def T_camera_to_world(self) -> np.ndarray:
+        return self.tracker.T_camera_to_world
+
+    # ------------------------------------------------------------------ one frame
+    def process(self, obs: CameraObservation) -> FrameRecord:
+        if self.volume is None:
+            return self.initialise(obs)
+        p, timer = self.params, StageTimer()
+        mesh = self.mesh
+
+        # Solver maps: the warped canonical mesh at the previous camera pose.
+        T_rendered = self.T_camera_to_world.copy()
+        maps = render_mesh_maps(*transform_surfels(invert(T_rendered), mesh.live_vertices, mesh.live_normals),
+                                mesh.faces, self.intrinsics)
+        timer.lap("solver_maps")
+
+        rigid = self.tracker.rigid(*maps_to_world(maps, T_rendered), obs,
+                                   self.tracker.stillness_map(maps.index, mesh.knn, mesh.weights))
+        timer.lap("rigid")
+
+        surfels = self.predicted_points(maps, T_rendered)
+        timer.lap("predict")
+        solved, nonrigid = self.tracker.nonrigid(self.field, surfels, obs)
+        self.field = self.tracker.factor(solved, nonrigid)
+        timer.lap("nonrigid")
+
+        depth = self._depth(obs)
+        ids = self.fusible_voxels(depth)
+        warped = self.warp_voxels(ids)
+        timer.lap("warp")
+        weight = self.voxel_fusion_weight if ids is None else self.voxel_fusion_weight[ids]
+        fused = fuse(self.volume, warped, weight, invert(self.T_camera_to_world), depth, self.intrinsics, p.tsdf,
+                     voxels=ids)
+        del warped, weight
+        timer.lap("fusion")
+
+        vertices, faces, normals = extract_mesh(self.volume)
+        timer.lap("marching_cubes")
+
+        first_new = self.field.num_nodes
+        if len(vertices):
+            self.field, first_new = extend(self.field, vertices)
+            if self.field.num_nodes > first_new:
+                self._update_voxel_skinning(first_new)
+        timer.lap("extend")
+
+        if len(vertices):   # an empty extraction keeps the previous mesh
+            self._set_mesh(vertices, normals, faces)
+        timer.lap("warp_mesh")
+
+        update = UpdateCounts(self.field.num_nodes - first_new, fused.updated,
+                              self.volume.num_voxels if ids is None else len(ids), len(surfels.positions))
+        return self._record(obs, timer, nonrigid.iterations, nonrigid.energy,
+                            (self.tracker.counts(rigid, nonrigid), update))
+
+    def initialise(self, obs: CameraObservation) -> FrameRecord:
+        """The volume bounds the first frame's points (plus margin); that frame is fused with the
+        identity warp, and the nodes are sampled from the surface marching cubes extracts."""
+        p, timer = self.params, StageTimer()
+        points = obs.surfels()["position"]
+        if len(points) >= p.min_first_points:
+            world, _ = transform_surfels(self.T_camera_to_world, points, points)
+            volume = TSDFVolume.from_points(world, p.tsdf)
+            fuse(volume, None, 1.0, invert(self.T_camera_to_world), self._depth(obs), self.intrinsics, p.tsdf)
+            vertices, faces, normals = extract_mesh(volume)
+            if len(vertices):
+                self.volume = volume
+                self.voxel_centres = volume.voxel_centres()
+                self.field = WarpField.from_points(vertices, p.warp_field)
+                self.voxel_knn, self.voxel_weights = self._skin_voxels()
+                self._update_fusion_weights()
+                self._update_blocks()
+                self._set_mesh(vertices, normals, faces)
+                self.reference_frame = obs.frame_index
+                self.T_reference_camera_to_world = self.T_camera_to_world.copy()
+        timer.lap("initialise")
+        return self._record(obs, timer)
+
+    # ------------------------------------------------------------------ parts
+    def predicted_points(self, maps, T_camera_to_world: np.ndarray) -> SurfelSet:
+        """The data term's model points (DynamicFusion Eq. 7 sums over the predicted image
+        domain): one per pixel the warped mesh covers, at the canonical point that pixel shows.
+        `maps` were drawn with the camera at T_camera_to_world.
+
+        The render gives each pixel's live surface point and normal and the mesh vertex nearest
+        to it; the point is taken back to canonical space by the inverse of the warp at that
+        vertex (the warp varies little across one triangle) and skinned like that vertex. One
+        point per pixel rather than per vertex gives the same data density as SurfelWarp's
+        per-pixel surfels, so the shared tracker's weights (lambda) mean the same for both.
+        """
+        mesh = self.mesh
+        hit = maps.index >= 0
+        vertex = maps.index[hit]
+        live, live_n = transform_surfels(T_camera_to_world, maps.vertex[hit], maps.normal[hit])
+        knn, weights = mesh.knn[vertex], mesh.weights[vertex]
+        ref, ref_n = inverse_warp(live, live_n, knn, weights, self.field)
+        return SurfelSet(ref, ref_n, knn, weights)
+
+    def _depth(self, obs: CameraObservation) -> np.ndarray:
+        """The depth the tracker used: filtered, only where the observation is valid."""
+        return np.where(obs.valid, obs.depth_m, 0).astype(np.float32)
+
+    def _chunks(self):
+        n, step = self.volume.num_voxels, self.params.voxel_chunk
+        for start in range(0, n, step):
+            stop = min(start + step, n)
+            yield start, stop, self.volume.voxel_centres(start, stop)
+
+    def _skin_voxels(self) -> tuple[np.ndarray, np.ndarray]:
+        """The discretised k-nearest-node field (DynamicFusion Sec. 3.3.3) at the voxel centres."""
+        k = self.params.warp_field.k_skin
+        knn = np.empty((self.volume.num_voxels, k), np.int32)
+        weights = np.empty((self.volume.num_voxels, k), np.float32)
+        for start, stop, centres in self._chunks():
+            knn[start:stop], weights[start:stop] = skin(centres, self.field.nodes, k, self.field.sigma_m)
+        return knn, weights
+
+    def _update_voxel_skinning(self, first_new: int) -> None:
+        """Skinning and fusion weights after nodes first_new.. were added (DynamicFusion Sec. 3.4).
+
+        A voxel's k nearest nodes change only if a new node is nearer than its current k-th
+        one, so only those voxels go through update_skinning (near the new nodes: a few %).
+        Blocks whose every voxel is nearer to all of its nodes than to any new node are skipped
+        without looking at their voxels.
+        """
+        field, k = self.field, self.params.warp_field.k_skin
+        if first_new < k:   # padded slots: the k-th slot is not the k-th nearest node
+            ids = np.arange(self.volume.num_voxels)
+        else:
+            b = self.blocks
+            c = 0.5 * (b.first + b.last)
+            half = np.linalg.norm(0.5 * (b.last - b.first), axis=1)
+            reach = np.linalg.norm(field.nodes[b.nodes] - c[:, None], axis=-1).max(1) + half
+            d_new, _ = KDTree(field.nodes[first_new:]).query(c.astype(np.float32), k=1)
+            ids = block_voxels(b, d_new.reshape(-1) - half <= reach, self.volume.dims)
+            if len(ids):
+                centres = self.voxel_centres[ids]
+                kth = field.nodes[self.voxel_knn[ids, -1]] - centres
+                d, _ = KDTree(field.nodes[first_new:]).query(centres, k=1)
+                ids = ids[d.reshape(-1) ** 2 < np.einsum("ij,ij->i", kth, kth)]
+        for s in range(0, len(ids), self.params.voxel_chunk):
+            g = ids[s:s + self.params.voxel_chunk]
+            centres = self.voxel_centres[g]
+            self.voxel_knn[g], self.voxel_weights[g] = update_skinning(
+                self.voxel_knn[g], self.voxel_weights[g], centres, field, first_new)
+            self.voxel_fusion_weight[g] = node_distance_weight(
+                centres, field.nodes, self.voxel_knn[g], self.params.warp_field.node_radius_m)
+        self._update_blocks()
+
+    def _update_fusion_weights(self) -> None:
+        """w(x) of Sec. 3.2, from the canonical nodes only: it changes only when nodes are added."""
+        w = np.empty(self.volume.num_voxels, np.float32)
+        for start, stop, centres in self._chunks():
+            w[start:stop] = node_distance_weight(centres, self.field.nodes, self.voxel_knn[start:stop],
+                                                 self.params.warp_field.node_radius_m)
+        self.voxel_fusion_weight = w
+
+    def fusible_voxels(self, depth_m: np.ndarray) -> np.ndarray | None:
+        """Flat indices of the voxels that Eq. 4 may fuse this frame (None: all of them, when
+        culling is off). Whole blocks are dropped only when no voxel in them can land in front
+        of the depth + tau, so fusion gives the same volume as warping every voxel."""
+        p = self.params
+        if not p.cull_voxels:
+            return None
+        keep = fusible_blocks(self.blocks, self.field, invert(self.T_camera_to_world), depth_m, self.intrinsics,
+                              p.tsdf.truncation_m, p.cull_margin_m)
+        return block_voxels(self.blocks, keep, self.volume.dims)
+
+    def warp_voxels(self, ids: np.ndarray | None = None) -> np.ndarray:
+        """Voxel centres (flat indices `ids`, default all) moved by the warp field W, world,
+        (n, 3) float32: the same dual quaternion blend as the surface (Sec. 3.2)."""
+        if ids is None:
+            return warp_points_fast(self.voxel_centres, self.voxel_knn, self.voxel_weights, self.field)
+        return warp_points_fast(self.voxel_centres[ids], self.voxel_knn[ids], self.voxel_weights[ids], self.field)
+
+    def _update_blocks(self) -> None:
+        self.blocks = voxel_blocks(self.volume, self.voxel_knn, self.field.num_nodes, self.params.cull_block)
+
+    def _set_mesh(self, vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray) -> None:
+        wf = self.field.params
+        knn, weights = skin(vertices, self.field.nodes, wf.k_skin, self.field.sigma_m)
+        live, live_n = warp(vertices, normals, knn, weights, self.field)
+        self.mesh = CanonicalMesh(vertices, normals, faces, knn, weights, live, live_n)
+
+    def model_bytes(self) -> int:
+        return sum(self.model_parts_bytes().values())
+
+    def model_parts_bytes(self) -> dict[str, int]:
+        """Memory held by the model: the volume, the voxel node field (k-NN, skinning and fusion
+        weights, centres, block node sets), the canonical mesh and the warp field."""
+        if self.volume is None:
+            return {"volume": 0, "voxel_field": 0, "mesh": 0, "warp_field": 0}
+        f = self.field
+        return {"volume": self.volume.nbytes,
+                "voxel_field": self.voxel_knn.nbytes + self.voxel_weights.nbytes + self.voxel_fusion_weight.nbytes
+                + self.voxel_centres.nbytes + self.blocks.nodes.nbytes,
+                "mesh": self.mesh.nbytes,
+                "warp_field": f.nodes.nbytes + f.transforms.nbytes + f.graph.nbytes}
+
+    def _record(self, obs: CameraObservation, timer: StageTimer, gauss_newton_iterations: int = 0,
+                energy: float = 0.0, details: tuple = ()) -> FrameRecord:
+        ready = self.volume is not None
+        sizes = self.model_parts_bytes()
+        volume = VolumeCounts(self.volume.num_voxels if ready else 0,
+                              int(np.count_nonzero(self.volume.weight)) if ready else 0,
+                              self.volume.voxel_size if ready else None, len(self.mesh.vertices) if ready else 0,
+                              len(self.mesh.faces) if ready else 0, sizes["volume"])
+        return FrameRecord(frame=obs.frame_index, reference_frame=self.reference_frame,
+                           camera_to_world=self.T_camera_to_world.copy(), seconds=timer.seconds,
+                           nodes=self.field.num_nodes if ready else 0,
+                           gauss_newton_iterations=gauss_newton_iterations, energy=energy,
+                           model_bytes=sum(sizes.values()), details=(volume,) + details)
+
+    def finish(self, out_dir, frames) -> None:
+        """Nothing beyond the common outputs."""
+
+    # ------------------------------------------------------------------ outputs
+    def live_vertices(self) -> tuple[np.ndarray, np.ndarray]:
+        """The warped canonical mesh in this frame's camera; ref_* = canonical positions in the
+        reference frame's camera."""
+        if self.mesh is None:
+            empty = np.zeros((0, 3), np.float32)
+            return vertex_table(empty, empty, empty), np.zeros((0, 3), np.int32)
+        m = self.mesh
+        live, live_n = transform_surfels(invert(self.T_camera_to_world), m.live_vertices, m.live_normals)
+        ref, _ = transform_surfels(invert(self.T_reference_camera_to_world), m.vertices, m.normals)
+        return vertex_table(live, live_n, ref), m.faces
+
+    def model_vertices(self) -> tuple[np.ndarray, np.ndarray]:
+        """The canonical mesh in the reference frame's camera."""
+        if self.mesh is None:
+            return self.live_vertices()
+        m = self.mesh
+        ref, ref_n = transform_surfels(invert(self.T_reference_camera_to_world), m.vertices, m.normals)
+        return vertex_table(ref, ref_n, ref), m.faces

@@ -1,0 +1,44 @@
+"""The `observe` method: each frame's depth surfels are the live model; nothing is tracked.
+
+A baseline for evaluation (good geometry, no correspondence over time) and the
+simplest complete run of the CLI and its outputs.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from surfelwarp.io.outputs import FrameRecord
+from surfelwarp.io.ply import vertex_table
+from surfelwarp.preprocess import CameraObservation
+
+
+class ObserveMethod:
+    name = "observe"
+
+    def __init__(self):
+        self._next_id = 0
+        self._table = None
+
+    def config(self) -> dict:
+        return {}
+
+    def process(self, obs: CameraObservation) -> FrameRecord:
+        s = obs.surfels()
+        n = len(s["position"])
+        ids = np.arange(self._next_id, self._next_id + n, dtype=np.uint32)
+        self._next_id += n
+        self._table = vertex_table(s["position"], s["normal"], s["position"], s["radius"], s["confidence"], ids)
+        return FrameRecord(frame=obs.frame_index, reference_frame=obs.frame_index,
+                           camera_to_world=np.eye(4), seconds={}, surfels=n)
+
+    def live_vertices(self) -> tuple[np.ndarray, None]:
+        return self._table, None
+
+    def model_vertices(self) -> tuple[np.ndarray, None]:
+        return self._table, None
+
+    def model_bytes(self) -> int:
+        return 0 if self._table is None else int(self._table.nbytes)
+
+    def finish(self, out_dir, frames) -> None:
+        """Nothing beyond the common outputs."""

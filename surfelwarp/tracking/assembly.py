@@ -1,0 +1,192 @@
+"""J^T W J summed directly in 6x6 node blocks into a sparsity pattern fixed for one solve.
+
+BlockPattern holds the pattern (diagonal, graph edges, node pairs sharing a skinned surfel);
+point_blocks sums the blocks of point-to-plane-like residuals of skinned surfels in factored form
+(only the 36 distinct products of the pair's 8-vector derivative are summed per node pair);
+pair_blocks is the form of every residual that moves a point by [-[y]x, I] xi.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from surfelwarp.geometry.dual_quaternion import _components
+from surfelwarp.geometry.se3 import skew
+from surfelwarp.tracking.blend_jacobian import residual_rows
+
+
+class BlockPattern:
+    """The 6x6-block sparsity of J^T W J: the diagonal, graph edges, and node pairs that share a
+    skinned surfel. Symmetric; the blocks are summed for the upper triangle (lo <= hi) only and
+    mirrored. Built once per solve (the graph and the skinning are fixed within one), so the
+    data and regulariser blocks of every iteration are sums into fixed slots instead of a
+    general sparse product."""
+
+    _LUT_MAX = 1 << 23     # node pairs looked up in a dense table up to this many (32 MB)
+
+    def __init__(self, num_nodes: int, graph: np.ndarray, knn: np.ndarray):
+        m = self.num_nodes = int(num_nodes)
+        knn = np.asarray(knn, np.int64)
+        knn = knn.reshape(len(knn), -1)
+        n, k = knn.shape
+        K = sp.csr_matrix((np.ones(n * k), knn.reshape(-1), np.arange(n + 1) * k), shape=(n, m))
+        j = np.repeat(np.arange(m), np.shape(graph)[1] if m else 0)
+        i = np.asarray(graph, np.int64).reshape(-1)
+        E = sp.csr_matrix((np.ones(len(i)), (j, i)), shape=(m, m))
+        S = (K.T @ K + E + E.T + sp.identity(m)).tocsr()     # all entries > 0: no cancellation
+        S.sum_duplicates()
+        S.sort_indices()
+        rows = np.repeat(np.arange(m), np.diff(S.indptr))
+        cols = S.indices.astype(np.int64)
+        upper = rows <= cols
+        self.lo, self.hi = rows[upper], cols[upper]
+        self.n_upper = len(self.lo)
+        if m * m <= self._LUT_MAX:
+            self._lut = np.full(m * m, -1, np.int32)
+            self._lut[self.lo * m + self.hi] = np.arange(self.n_upper)
+        else:
+            self._lut = None
+            self._table = sp.csr_array((np.arange(1, self.n_upper + 1), (self.lo, self.hi)), shape=(m, m))
+        self.indptr, self.indices = S.indptr, S.indices
+        # Every surfel's unordered slot pairs s <= t: their upper block, and whether both orders
+        # (s, t), (t, s) fall in that block (s < t on one node: a diagonal block).
+        self.knn = knn
+        self.pair_s, self.pair_t = np.triu_indices(k)
+        a, b = knn[:, self.pair_s], knn[:, self.pair_t]
+        self.slots = self.keys(np.minimum(a, b), np.maximum(a, b))
+        self.double = (a == b) & (self.pair_s < self.pair_t)
+        self.up = self.keys(np.minimum(rows, cols), np.maximum(rows, cols))   # full block -> upper block
+        self.transposed = rows > cols
+        self.diag = self.keys(np.arange(m), np.arange(m))
+        # Regulariser edges (self slots of the graph are padding): blocks (i,i), (j,j), (i,j).
+        real = self.edge_real = i != j
+        self.edge_j, self.edge_i = j[real], i[real]
+        ej, ei = self.edge_j, self.edge_i
+        self.edge_flip = ei > ej
+        slots = np.concatenate([self.keys(ei, ei), self.keys(ej, ej),
+                                self.keys(np.minimum(ei, ej), np.maximum(ei, ej))])
+        sign = np.repeat([1.0, 1.0, -1.0], len(ei))
+        self._reg_scatter = sp.csc_matrix((sign, slots, np.arange(len(slots) + 1)), shape=(self.n_upper, len(slots)))
+
+    def keys(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Upper block index of node pairs lo <= hi (which must be in the pattern)."""
+        lo, hi = np.asarray(lo, np.int64), np.asarray(hi, np.int64)
+        if self._lut is not None:
+            return self._lut[lo * self.num_nodes + hi]
+        return (np.asarray(self._table[lo.reshape(-1), hi.reshape(-1)]) - 1).reshape(lo.shape)
+
+    def sum_blocks(self, slots: np.ndarray, weights: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """(n_upper, V): sum over rows c of weights[c, p] * values[c] into slot slots[c, p]
+        (one sparse-times-dense product: a scatter-add in compiled code)."""
+        c, p = slots.shape
+        P = sp.csc_matrix((weights.reshape(-1), slots.reshape(-1), np.arange(c + 1) * p), shape=(self.n_upper, c))
+        return P @ values
+
+    def reg_blocks(self, values: np.ndarray) -> np.ndarray:
+        return self._reg_scatter @ values
+
+    def matrix(self, upper: np.ndarray) -> sp.bsr_matrix:
+        """The symmetric (6M, 6M) BSR matrix of upper blocks (n_upper, 6, 6)."""
+        full = upper[self.up]
+        full[self.transposed] = full[self.transposed].transpose(0, 2, 1)
+        n = 6 * self.num_nodes
+        return sp.bsr_matrix((full, self.indices, self.indptr), shape=(n, n))
+
+
+_IU8 = np.triu_indices(8)
+_SYM8 = np.zeros((8, 8), np.int64)
+_SYM8[_IU8] = np.arange(len(_IU8[0]))
+_SYM8 = np.maximum(_SYM8, _SYM8.T).reshape(-1)        # (8, 8) entry -> index of its upper entry
+
+
+def pair_blocks(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(E, 6, 6) [S_u, I]^T [S_v, I] with S_y = -[y]x, the form of the regulariser's Jacobians
+    (J_i = [S_a, I], J_j = -[S_t_j, I]): [[(u.v) I - v u^T, [u]x], [-[v]x, I]]."""
+    out = np.empty((len(u), 6, 6))
+    out[:, :3, :3] = -v[:, :, None] * u[:, None, :]
+    out[:, [0, 1, 2], [0, 1, 2]] += np.einsum("ei,ei->e", u, v)[:, None]
+    out[:, :3, 3:] = skew(u)
+    out[:, 3:, :3] = -skew(v)
+    out[:, 3:, 3:] = np.eye(3)
+    return out
+
+
+CHUNK = 1 << 15     # correspondences / surfels per batch: keeps the temporaries in cache
+
+
+def point_blocks(pattern, sel, b, signed, points, normals, D, r, w):
+    """Data blocks and gradient of the surfels sel (into pattern.knn and the per-surfel blends b,
+    signed weights and reference points, the points as components (3, N)) with depth normals
+    (C, 3), residuals and weights per pair.
+
+    The Jacobian factors as J[c, s] = signed[c, s] D[knn[c, s]] rows[c] (residual_rows), so
+    block (n1, n2) = D_n1 [sum w_c signed_s signed_t rows_c rows_c^T] D_n2^T: the sum over slot
+    pairs runs on the 36 distinct entries of the symmetric 8x8 rows_c rows_c^T."""
+    A = np.zeros((pattern.n_upper, 36))
+    e = np.zeros((pattern.num_nodes, 8))
+    k = pattern.knn.shape[1]
+    for start in range(0, len(sel), CHUNK):
+        part = slice(start, start + CHUNK)
+        idx = sel[part]
+        rows = residual_rows(_components(b[idx]), points[:, idx], _components(normals[part]))
+        sg, wc = signed[idx], w[part]
+        pw = np.take(sg, pattern.pair_s, axis=1) * np.take(sg, pattern.pair_t, axis=1)
+        pw *= wc[:, None]
+        pw[pattern.double[idx]] *= 2.0
+        Q = np.take(rows, _IU8[0], axis=1) * np.take(rows, _IU8[1], axis=1)      # C-ordered (c, 36)
+        A += pattern.sum_blocks(pattern.slots[idx], pw, Q)
+        c = len(idx)
+        Kt = sp.csc_matrix((sg.reshape(-1), pattern.knn[idx].reshape(-1), np.arange(c + 1) * k),
+                           shape=(pattern.num_nodes, c))
+        e += Kt @ ((wc * r[part])[:, None] * rows)
+    A = A[:, _SYM8].reshape(-1, 8, 8)
+    blocks = (D[pattern.lo] @ A) @ D[pattern.hi].transpose(0, 2, 1)
+    return blocks, np.einsum("nij,nj->ni", D, e)
+
+
+def dense_point_blocks(pattern, J, r, w):
+    """Data blocks and gradient from per-slot Jacobians (C, k, 6) of all the pattern's surfels."""
+    knn, s, t = pattern.knn, pattern.pair_s, pattern.pair_t
+    a, b = knn[:, s], knn[:, t]
+    X = np.einsum("cpi,cpj->cpij", J[:, s], J[:, t])
+    upper = np.where((a < b)[..., None, None], X, X.transpose(0, 1, 3, 2))
+    upper += np.where(pattern.double[..., None, None], X, 0.0)
+    p = len(s)
+    blocks = pattern.sum_blocks(pattern.slots.reshape(-1, 1), np.repeat(w, p), upper.reshape(-1, 36))
+    m = pattern.num_nodes
+    g = np.bincount((6 * knn[:, :, None] + np.arange(6)).reshape(-1), ((w * r)[:, None, None] * J).reshape(-1),
+                    minlength=6 * m)
+    return blocks.reshape(-1, 6, 6), g.reshape(m, 6)
+
+
+@dataclass(frozen=True)
+class Border:
+    """One extra 6-variable block bordering the node system (the rest anchors' common motion)."""
+    B: np.ndarray      # (M, 6, 6) coupling of each node's twist to the border's
+    C: np.ndarray      # (6, 6) the border's own block
+    g: np.ndarray      # (6,) its gradient
+
+
+@dataclass(eq=False)
+class NormalEquations:
+    """J^T W J and J^T W r of one Gauss-Newton iteration, summed term by term."""
+    pattern: BlockPattern
+    free: np.ndarray              # (M,) bool: the nodes solved (the others keep a zero step)
+    D: np.ndarray                 # (M, 6, 8) each node's dual quaternion by its twist
+    upper: np.ndarray | None = None     # (n_upper, 6, 6) the pattern's upper blocks (None: zero)
+    gradient: np.ndarray | None = None  # (M, 6)
+    border: Border | None = None
+
+    def add(self, gradient: np.ndarray, upper: np.ndarray | None = None, diagonal: np.ndarray | None = None) -> None:
+        """Add a term's gradient (M, 6) and its blocks: on the whole pattern (n_upper, 6, 6) or
+        on the node diagonal only (M, 6, 6). The first term's arrays are taken over, not copied:
+        on a room the pattern holds ~10^5 blocks, a pass over them costs a few % of a frame."""
+        self.gradient = gradient if self.gradient is None else self.gradient + gradient
+        if upper is not None:
+            self.upper = upper if self.upper is None else self.upper + upper
+        if diagonal is not None:
+            if self.upper is None:
+                self.upper = np.zeros((self.pattern.n_upper, 6, 6))
+            self.upper[self.pattern.diag] += diagonal

@@ -1,0 +1,155 @@
+"""The damped Gauss-Newton step: (H + mu I) x = -g, mu = damping * mean(diag H).
+
+By conjugate gradients with a block-Jacobi (per-node 6x6) preconditioner, as the GPU solver of
+Dou et al. that SurfelWarp follows, falling back to sparse LU (SuperLU) when it does not reach
+its tolerance; with rest anchors the system is bordered by one more 6-variable block (Bordered).
+Nodes held out of the solve are removed from the system (restrict) and get a zero step.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from surfelwarp.tracking.assembly import NormalEquations
+
+LINEAR_SOLVERS = ("pcg", "direct")
+
+
+class Bordered:
+    """H bordered by one extra 6-variable block (the anchors' common motion): [[H, B], [B^T, C]]
+    with B given as (M, 6, 6) row blocks; as much of a matrix as the step solvers use."""
+
+    def __init__(self, H: sp.spmatrix, B: np.ndarray, C: np.ndarray):
+        self.H, self.B, self.C = H, B, C
+        n = H.shape[0] + 6
+        self.shape = (n, n)
+
+    def diagonal(self) -> np.ndarray:
+        return np.concatenate([self.H.diagonal(), np.diag(self.C)])
+
+    def __matmul__(self, p: np.ndarray) -> np.ndarray:
+        x, z = p[:-6], p[-6:]
+        top = self.H @ x + (self.B @ z).reshape(-1)
+        return np.concatenate([top, np.einsum("mij,mi->j", self.B, x.reshape(-1, 6)) + self.C @ z])
+
+    def tosparse(self) -> sp.csr_matrix:
+        m = len(self.B)
+        Bs = sp.bsr_matrix((self.B, np.zeros(m, np.int64), np.arange(m + 1)), shape=(6 * m, 6)).tocsr()
+        return sp.bmat([[self.H, Bs], [Bs.T, sp.csr_matrix(self.C)]], format="csr")
+
+
+@dataclass(frozen=True)
+class Step:
+    xi: np.ndarray          # (M, 6) node twists (zero for the nodes held out)
+    zeta: np.ndarray        # (6,) the border's twist (zeros without a border)
+    lu_fallback: bool       # PCG did not converge and sparse LU solved the step
+
+
+def solve_system(system: NormalEquations, damping: float, linear_solver: str = "pcg", pcg_rtol: float = 1e-4,
+                 pcg_max_iterations: int = 500) -> Step:
+    """The damped Gauss-Newton step of the system's free nodes, and of its border if it has one."""
+    pattern, free, border = system.pattern, system.free, system.border
+    H, g, diag = pattern.matrix(system.upper), system.gradient.reshape(-1), system.upper[pattern.diag]
+    if not free.all():
+        H, g, diag = restrict(H, g, diag, free)
+    if border is not None:
+        H, g, diag = Bordered(H, border.B[free], border.C), np.concatenate([g, border.g]), \
+            np.concatenate([diag, border.C[None]])
+    ok = False
+    if linear_solver == "pcg":
+        xi, _, ok = solve_step_pcg(H, g, damping, pcg_rtol, pcg_max_iterations, diag)
+    if not ok:
+        xi = solve_step(H.tosparse() if border is not None else H, g, damping)
+    zeta = np.zeros(6)
+    if border is not None:
+        xi, zeta = xi[:-6], xi[-6:]
+    if not free.all():
+        xi = _expand(xi, free)
+    return Step(xi.reshape(-1, 6), zeta, linear_solver == "pcg" and not ok)
+
+
+def restrict(H: sp.bsr_matrix, g: np.ndarray, diag_blocks: np.ndarray, keep: np.ndarray):
+    """The system of the nodes `keep` (bool (M,)) with the others held at zero step: H's 6x6
+    blocks between kept nodes, their gradient and diagonal blocks."""
+    m = len(keep)
+    rows = np.repeat(np.arange(m), np.diff(H.indptr))
+    sel = keep[rows] & keep[H.indices]
+    new = np.cumsum(keep) - 1
+    counts = np.bincount(new[rows[sel]], minlength=int(keep.sum()))
+    indptr = np.concatenate([[0], np.cumsum(counts)])
+    n = 6 * int(keep.sum())
+    Hk = sp.bsr_matrix((H.data[sel], new[H.indices[sel]], indptr), shape=(n, n))
+    return Hk, g.reshape(m, 6)[keep].reshape(-1), diag_blocks[keep]
+
+
+def _expand(xi: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """(M, 6) steps, zero for the nodes held fixed."""
+    full = np.zeros((len(free), 6))
+    full[free] = np.reshape(xi, (-1, 6))
+    return full
+
+
+def _damping(H: sp.spmatrix, damping: float) -> float:
+    return damping * max(float(np.mean(H.diagonal())), 1e-12)
+
+
+def solve_step(H: sp.spmatrix, g: np.ndarray, damping: float) -> np.ndarray:
+    """The damped Gauss-Newton step by sparse LU: (H + mu I) x = -g, mu = damping * mean(diag H)."""
+    A = (H + sp.identity(H.shape[0], format="csr") * _damping(H, damping)).tocsc()
+    # The damped matrix is symmetric positive definite: symmetric mode without pivoting keeps
+    # the fill-reducing ordering intact (about 10x faster than the default pivoting LU), and
+    # minimum degree on A^T + A suits its symmetric pattern (2-3x faster than COLAMD at 4k nodes).
+    lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+    return lu.solve(-np.asarray(g, np.float64))
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    # einsum rather than BLAS: threaded ddot on short vectors is slow on a busy machine.
+    return float(np.einsum("i,i->", a, b))
+
+
+def solve_step_pcg(H: sp.spmatrix, g: np.ndarray, damping: float, rtol: float = 1e-4, max_iterations: int = 500,
+                   diag_blocks: np.ndarray | None = None) -> tuple[np.ndarray, int, bool]:
+    """The damped Gauss-Newton step by conjugate gradients with a block-Jacobi (per-node 6x6)
+    preconditioner, from x = 0, until |residual| <= rtol |g|. Returns (x, iterations, converged);
+    diag_blocks (M, 6, 6) are H's diagonal blocks if known."""
+    g = np.asarray(g, np.float64)
+    n = len(g)
+    m = n // 6
+    mu = _damping(H, damping)
+    if diag_blocks is None:
+        Hb = H if isinstance(H, sp.bsr_matrix) and H.blocksize == (6, 6) else sp.bsr_matrix(H, blocksize=(6, 6))
+        rows = np.repeat(np.arange(m), np.diff(Hb.indptr))
+        on = Hb.indices == rows
+        diag_blocks = np.zeros((m, 6, 6))
+        diag_blocks[rows[on]] = Hb.data[on]
+    try:
+        Minv = np.linalg.inv(diag_blocks + mu * np.eye(6))
+    except np.linalg.LinAlgError:
+        return np.zeros(n), 0, False
+    x = np.zeros(n)
+    r = -g
+    target = rtol * np.sqrt(_dot(g, g))
+    z = np.einsum("nij,nj->ni", Minv, r.reshape(m, 6)).reshape(-1)
+    p = z.copy()
+    rz = _dot(r, z)
+    for it in range(max_iterations + 1):
+        if np.sqrt(_dot(r, r)) <= target:
+            return x, it, True
+        if it == max_iterations:
+            break
+        Hp = H @ p + mu * p
+        pHp = _dot(p, Hp)
+        if not pHp > 0:
+            break
+        alpha = rz / pHp
+        x += alpha * p
+        r -= alpha * Hp
+        z = np.einsum("nij,nj->ni", Minv, r.reshape(m, 6)).reshape(-1)
+        rz, rz_old = _dot(r, z), rz
+        p *= rz / rz_old
+        p += z
+    return x, it, False

@@ -1,0 +1,82 @@
+"""The graph regulariser (SurfelWarp Eq. 8, DynamicFusion Eq. 8):
+lambda * sum_j sum_{i in N(j)} |T_i p_j - T_j p_j|^2.
+
+With the node-local convention of warp_field (T_j x = R_j (x - p_j) + p_j + t_j) the residual
+of edge (j, i) is R_i (p_j - p_i) + p_i + t_i - p_j - t_j. Edges have unit weight (DynamicFusion's
+alpha_ij = max(sigma_i, sigma_j) is a constant here).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from surfelwarp.deform.warp_field import WarpField
+from surfelwarp.geometry.se3 import skew
+from surfelwarp.tracking.assembly import BlockPattern, NormalEquations, pair_blocks
+from surfelwarp.tracking.terms import BaseTerm, Iterate, Problem, register
+
+
+def _edges(field: WarpField) -> tuple[np.ndarray, np.ndarray]:
+    j = np.repeat(np.arange(field.num_nodes), field.graph.shape[1])
+    i = field.graph.reshape(-1).astype(np.int64)
+    return j, i
+
+
+def neighbour_motion(field: WarpField) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per edge (j, i): a = L_i (p_j - p_i) (rotation and translation of L_i), t_j and the residual."""
+    j, i = _edges(field)
+    p, L = field.nodes.astype(np.float64), field.transforms
+    a = np.einsum("eab,eb->ea", L[i, :3, :3], p[j] - p[i]) + L[i, :3, 3]
+    t_j = L[j, :3, 3]
+    return a, t_j, p[i] + a - p[j] - t_j
+
+
+def reg_residuals(field: WarpField) -> np.ndarray:
+    """(M, K, 3): T_i p_j - T_j p_j for every node j and graph neighbour i (zero for self slots)."""
+    return neighbour_motion(field)[2].reshape(field.num_nodes, -1, 3)
+
+
+def reg_jacobian(field: WarpField) -> tuple[np.ndarray, np.ndarray]:
+    """d reg_residuals / d xi_i (neighbour) and d xi_j (node), each (M, K, 3, 6).
+
+    d(exp(xi) y)/dxi at 0 is [-[y]x, I]; the neighbour moves a = L_i (p_j - p_i), the node t_j.
+    """
+    a, t_j, _ = neighbour_motion(field)
+    eye = np.broadcast_to(np.eye(3), a.shape[:-1] + (3, 3))
+    Ji = np.concatenate([-skew(a), eye], axis=-1)
+    Jj = -np.concatenate([-skew(t_j), eye], axis=-1)
+    shape = (field.num_nodes, -1, 3, 6)
+    return Ji.reshape(shape), Jj.reshape(shape)
+
+
+def regulariser_blocks(field: WarpField, pattern: BlockPattern) -> tuple[np.ndarray, np.ndarray]:
+    """Upper blocks (n_upper, 6, 6) of J_r^T J_r and J_r^T r_r (M, 6) of the regulariser."""
+    m = field.num_nodes
+    a, t, rr = (v[pattern.edge_real] for v in neighbour_motion(field))
+    flip = pattern.edge_flip[:, None]
+    # Blocks (i, i), (j, j) and (i, j) = J_i^T J_j = -pair(a, t), stored as (j, i) = -pair(t, a)
+    # where j < i (the minus sign is in the scatter matrix).
+    u = np.concatenate([a, t, np.where(flip, t, a)])
+    v = np.concatenate([a, t, np.where(flip, a, t)])
+    blocks = pattern.reg_blocks(pair_blocks(u, v).reshape(-1, 36)).reshape(-1, 6, 6)
+    nodes = np.concatenate([pattern.edge_i, pattern.edge_j])
+    gv = np.concatenate([np.concatenate([np.cross(a, rr), rr], 1), -np.concatenate([np.cross(t, rr), rr], 1)])
+    g = np.bincount((6 * nodes[:, None] + np.arange(6)).reshape(-1), gv.reshape(-1), minlength=6 * m)
+    return blocks, g.reshape(m, 6)
+
+
+class RegulariserTerm(BaseTerm):
+    def __init__(self, lambda_reg: float):
+        self.lambda_reg = lambda_reg
+
+    def energy(self, at: Iterate) -> float:
+        return self.lambda_reg * float(np.sum(reg_residuals(at.field) ** 2))
+
+    def linearize(self, at: Iterate, system: NormalEquations) -> float:
+        blocks, g = regulariser_blocks(at.field, system.pattern)
+        system.add(self.lambda_reg * g, upper=self.lambda_reg * blocks)
+        return self.energy(at)
+
+
+@register("regulariser")
+def build(problem: Problem) -> RegulariserTerm:
+    return RegulariserTerm(problem.params.lambda_reg)

@@ -1,0 +1,257 @@
+"""The tracker both methods share: rigid ICP, then non-rigid Gauss-Newton (with rest anchors,
+anchors.py, unless their weight is 0), then the warp field's common rigid motion moved into the
+camera pose.
+
+Pose conventions: `T_camera_to_world` maps this frame's camera points into the world (the first
+frame's camera); twists are (omega, v), rotation first (geometry/se3.py).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from surfelwarp.deform.hierarchy import Hierarchy, HierarchyParams, build_hierarchy, with_hierarchy
+from surfelwarp.deform.warp_field import WarpField, to_local
+from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.geometry.se3 import fit_rigid, invert
+from surfelwarp.preprocess import CameraObservation
+from surfelwarp.tracking.anchors import AnchorParams, NodeAnchors, follow_motion, node_depth_m
+from surfelwarp.tracking.degeneracy import HeldDirections
+from surfelwarp.tracking.gauss_newton import NonRigidParams, NonRigidResult, solve_nonrigid
+from surfelwarp.tracking.rigid_icp import RigidParams, RigidResult, rigid_icp
+
+
+CAMERAS = ("moving", "static")
+
+
+@dataclass(frozen=True)
+class TrackingParams:
+    # 'moving': the camera pose is estimated; 'static': it stays the identity and every motion
+    # is the warp field's (rigid ICP then only gives the solve a second start, the scene's
+    # common motion).
+    camera: str = "moving"
+    rigid: RigidParams = field(default_factory=RigidParams)
+    nonrigid: NonRigidParams = field(default_factory=NonRigidParams)
+    # Start rigid ICP from a constant-velocity prediction. Off by default: on deforming scenes
+    # the "camera motion" is partly deformation, and extrapolating it pushes the model along
+    # directions depth does not observe (measured on the sheet scene: lost at frame 35 with it,
+    # 1.9 mm mean EPE over 90 frames without).
+    predict_motion: bool = False
+    factor_rigid_motion: bool = True   # move the warp field's common rigid motion into the pose
+    factor_by_support: bool = True     # that motion fitted to the nodes the depth constrains,
+                                       # weighted by their pairs' skinning (False: every node alike)
+    # DynamicFusion's deformation tree as the regulariser (deform/hierarchy.py): in place of SurfelWarp's
+    # k-nearest-node graph (Eq. 10), or on top of it with hierarchy.keep_graph; off: the graph.
+    hierarchy: HierarchyParams = field(default_factory=HierarchyParams)
+    anchor: AnchorParams = field(default_factory=AnchorParams)   # weight 0: off (the papers' solve)
+    # Rigid ICP weighs the model surface skinned to released (moving) nodes this much against
+    # the anchored (still) surface: the parts that hold still decide the camera's motion, and a
+    # bending limb no longer pushes it. Everything moving: all weigh alike, as without anchors.
+    released_rigid_weight: float = 0.05
+    # Below this share of still (anchored) surface in view there is no evidence of the camera's
+    # motion: it is held, and rigid ICP's motion is the scene's (as with a static camera).
+    min_still_share: float = 0.1
+
+    CHOICES = {"camera": CAMERAS}
+
+
+@dataclass(frozen=True)
+class SurfelSet:
+    """Model points the data term uses: reference positions, normals and their skinning."""
+    positions: np.ndarray
+    normals: np.ndarray
+    knn: np.ndarray
+    weights: np.ndarray
+
+
+def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None,
+                        rest_points: np.ndarray | None = None,
+                        held: HeldDirections | None = None) -> tuple[WarpField, np.ndarray]:
+    """Split W = A o W' with A the rigid motion best fitting the nodes' displacements
+    (weighted by node_weights, if given) from rest_points (default: the nodes themselves),
+    without its components along the `held` directions (they stay in the field: the camera does
+    not move where the data cannot say).
+
+    DQB commutes with a common left factor, so W' = A^-1 o W exactly. Without this, rigid
+    tracking error that the non-rigid solve absorbs would stay in the warp field forever and
+    the camera pose would drift from the composite motion that is actually tracked. Weighted by
+    data support, A is the seen nodes' common motion even when most nodes are out of view (a
+    room); fitted to every node alike it is only part of it, and the rest stays in their
+    transforms.
+    """
+    A = fit_rigid(field.nodes if rest_points is None else rest_points, field.live_nodes(), node_weights)
+    if held is not None:
+        A = held.project(A)
+    G = invert(A) @ field.global_transforms()
+    return field.with_transforms(to_local(G, field.nodes)), A
+
+
+@dataclass(frozen=True)
+class TrackingCounts:
+    """What the tracker did in one frame, as metrics.json lists it (None: not applicable)."""
+    correspondences: int                      # depth pairs of the non-rigid solve, at its result
+    data_rmse_mm: float
+    rigid_rmse_m: float
+    rigid_iterations: int
+    rigid_degenerate_directions: int          # directions rigid ICP did not move the camera along
+    silhouette_points: int                    # model points the camera saw through (free space)
+    released_nodes: int | None = None         # nodes free of their rest anchors
+    unsupported_fraction: float | None = None
+    unexplained_fraction: float | None = None
+    # The silent fallbacks: steps PCG did not converge on (solved by sparse LU), and a frame
+    # whose rigid ICP found too few pairs (the pose kept from the frame before).
+    lu_fallbacks: int = 0
+    rigid_pose_kept: bool = False
+
+
+class Tracker:
+    """Camera pose and warp field from frame to frame (holds the pose and its last motion)."""
+
+    def __init__(self, intrinsics: Intrinsics, params: TrackingParams = TrackingParams()):
+        self.intrinsics, self.params = intrinsics, params
+        self.T_camera_to_world = np.eye(4)
+        self._camera_velocity = np.eye(4)     # previous frame's camera motion, T_prev^-1 T_now
+        self.tree: Hierarchy | None = None    # the deformation tree of the last solve, if enabled
+        self._tree_nodes: np.ndarray | None = None
+        self.anchors: NodeAnchors | None = None   # of the last solved field, if anchors are on
+        self._T_previous = self._T_guess = np.eye(4)
+        self._scene_motion: np.ndarray | None = None   # ICP's motion when it is not the camera's
+        self._held: HeldDirections | None = None       # directions ICP did not move the camera along
+        self._camera_moves = params.camera == "moving"  # this frame: still surface to tell its motion
+        self._lu_fallbacks = 0                          # this frame's, over every solve
+
+    def stillness(self, knn: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """(N,) how still each point is (0-1), given its nodes and weights (N, k) in the last
+        solved field: its skinning over the nodes' stillness (NodeAnchors; 1 without anchors;
+        nodes born since are still)."""
+        if self.anchors is None or self.params.anchor.weight <= 0:
+            return np.ones(len(knn), np.float32)
+        node = self.anchors.still_weights()
+        knn = np.asarray(knn)
+        still = np.where(knn < len(node), node[np.minimum(knn, len(node) - 1)], 1.0)
+        return np.einsum("nk,nk->n", np.asarray(weights, np.float32), still.astype(np.float32))
+
+    def stillness_map(self, index_map: np.ndarray, knn: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """(H, W) stillness of a model map whose pixels show the points `index_map` (-1: none,
+        NaN in the map) of the skinning knn/weights."""
+        hit = index_map >= 0
+        out = np.full(index_map.shape, np.nan, np.float32)
+        out[hit] = self.stillness(knn[index_map[hit]], weights[index_map[hit]])
+        return out
+
+    def rigid(self, model_vertex: np.ndarray, model_normal: np.ndarray, obs: CameraObservation,
+              stillness: np.ndarray | None = None) -> RigidResult:
+        """Rigid ICP of the observation to world-frame model maps drawn at the current pose.
+        With a stillness map (stillness_map), the still surface leads (released_rigid_weight);
+        with too little of it in view (min_still_share), or a static camera, the pose is held
+        and ICP's motion is kept as the scene's, the non-rigid solve's second start. The pose
+        is also held if ICP found too few pairs."""
+        p = self.params
+        self._T_previous = self.T_camera_to_world
+        self._T_guess = self.T_camera_to_world @ self._camera_velocity if p.predict_motion else self.T_camera_to_world
+        self._scene_motion, self._lu_fallbacks = None, 0
+        weight, share = None, 1.0
+        if stillness is not None and np.nanmin(stillness, initial=1.0) < 1.0:
+            share = float(np.nanmean(stillness))
+            floor = p.released_rigid_weight
+            weight = np.where(np.isnan(stillness), 0.0, floor + (1.0 - floor) * stillness).astype(np.float32)
+        result = rigid_icp(model_vertex, model_normal, self.T_camera_to_world, obs, self._T_guess, p.rigid,
+                           model_weight_map=weight)
+        self._held, self._camera_moves = None, p.camera == "moving" and share >= p.min_still_share
+        if not np.isfinite(result.rmse_m):
+            self._T_guess = self._T_previous
+        elif self._camera_moves:
+            self.T_camera_to_world, self._held = result.T_camera_to_world, result.held
+        else:
+            self._scene_motion = self.T_camera_to_world @ invert(result.T_camera_to_world)
+            self._T_guess = self.T_camera_to_world
+        return result
+
+    def nonrigid(self, field: WarpField, surfels: SurfelSet, obs: CameraObservation) -> tuple[WarpField, NonRigidResult]:
+        """Gauss-Newton from `field` at the rigid pose; call after `rigid`. Returns the solved
+        field (not yet factored)."""
+        depth = (obs.vertex_map, obs.normal_map, obs.valid, self.intrinsics)
+        model = (surfels.positions, surfels.normals, surfels.knn, surfels.weights)
+        h = self.params.hierarchy
+        solve_field = with_hierarchy(field, self._hierarchy(field), h.keep_graph) if h.enabled else field
+        anchor = None
+        if self.params.anchor.weight > 0:
+            self.anchors = self.anchors.follow(field) if self.anchors is not None else NodeAnchors.at_rest(field)
+            anchor = self.anchors.term(self.params.anchor, node_depth_m(field, self.T_camera_to_world),
+                                       solve_field.num_nodes, self._held)
+
+        def solve(start: WarpField, T_camera_to_world: np.ndarray) -> tuple[WarpField, NonRigidResult]:
+            solved, result = solve_nonrigid(start, *model, *depth, T_camera_to_world, self.params.nonrigid, anchor,
+                                            obs.beyond)
+            self._lu_fallbacks += result.lu_fallbacks
+            return solved, result
+
+        def fits_better(second: NonRigidResult) -> bool:
+            """A second start's fit wins with a lower energy over about as many pairs."""
+            return second.energy < result.energy and second.correspondences >= 0.9 * result.correspondences
+
+        solved, result = solve(solve_field, self.T_camera_to_world)
+        M = self._scene_motion
+        if M is not None and (not result.converged or result.correspondences < 0.8 * len(surfels.positions)):
+            # The scene's rigid motion by ICP, tried as a second start: a fast object needs it,
+            # a surface whose shape travels across it (waves) is better off without.
+            moved = field.with_transforms(follow_motion(field.transforms, field.nodes, M))
+            moved_solve = with_hierarchy(moved, self._hierarchy(moved), h.keep_graph) if h.enabled else moved
+            solved2, result2 = solve(moved_solve, self.T_camera_to_world)
+            if fits_better(result2):
+                solved, result = solved2, result2
+        elif not result.converged and not np.array_equal(self.T_camera_to_world, self._T_guess):
+            # Rigid ICP can mistake deformation for camera motion: try the solve from the
+            # starting pose too.
+            solved2, result2 = solve(solve_field, self._T_guess)
+            if fits_better(result2):
+                solved, result, self.T_camera_to_world = solved2, result2, self._T_guess
+        if result.released is not None:
+            self.anchors = self.anchors.release(result.released)
+        # The tree's upper levels only regularise; the warp nodes come first.
+        return field.with_transforms(solved.transforms[:field.num_nodes]), result
+
+    def counts(self, rigid: RigidResult, nonrigid: NonRigidResult) -> TrackingCounts:
+        """The frame's counts, after `factor`."""
+        alignment = nonrigid.alignment
+        return TrackingCounts(
+            nonrigid.correspondences, 1000 * nonrigid.data_rmse_m, float(rigid.rmse_m), rigid.iterations,
+            rigid.degenerate_directions, nonrigid.silhouette_points,
+            int(self.anchors.released.sum()) if self.anchors is not None else None,
+            round(alignment.unsupported_fraction, 5) if alignment is not None else None,
+            round(alignment.unexplained_fraction, 5) if alignment is not None else None,
+            self._lu_fallbacks, not np.isfinite(rigid.rmse_m))
+
+    def _hierarchy(self, field: WarpField) -> Hierarchy:
+        """The deformation tree over the field's nodes, rebuilt when they change."""
+        if self._tree_nodes is not field.nodes:
+            h = self.params.hierarchy
+            self.tree = build_hierarchy(field.nodes, field.params.node_radius_m, h.levels, h.beta, h.k)
+            self._tree_nodes = field.nodes
+        return self.tree
+
+    def factor(self, field: WarpField, result: NonRigidResult | None = None) -> WarpField:
+        """Move the field's common rigid motion into the pose (if enabled); ends the frame.
+        `result` (the solve's) gives the node support the motion is fitted to."""
+        p = self.params
+        anchors = self.anchors if p.anchor.weight > 0 and self.anchors is not None \
+            and self.anchors.nodes is field.nodes else None
+        if p.factor_rigid_motion and self._camera_moves:
+            support, rest = None, None
+            if p.factor_by_support and result is not None and result.node_support is not None:
+                support = result.node_support[:field.num_nodes]
+                # a Kabsch fit needs three nodes not on a line; fewer supported: every node alike
+                support = support if np.count_nonzero(support) >= 3 else None
+            if anchors is not None and support is not None:
+                held = support * ~anchors.released
+                if np.count_nonzero(held) >= 3 and held.sum() >= 0.5 * support.sum():
+                    # The motion that returns the anchored nodes to rest is the camera's; fitted
+                    # to all, the moving parts would drag the pose and the anchored nodes along.
+                    support, rest = held, field.nodes + anchors.rest[:, :3, 3]
+            field, A = factor_rigid_motion(field, support, rest, self._held)
+            self.T_camera_to_world = invert(A) @ self.T_camera_to_world
+        if anchors is not None:
+            self.anchors = anchors.settle(field, node_depth_m(field, self.T_camera_to_world), p.anchor)
+        self._camera_velocity = invert(self._T_previous) @ self.T_camera_to_world
+        return field

@@ -1,0 +1,167 @@
+import numpy as np
+import pytest
+
+from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.render.solver_maps import render_solver_maps
+
+K = Intrinsics(300.0, 310.0, 159.5, 119.5, 320, 240)
+
+
+pytestmark = pytest.mark.usefixtures("gl")     # every test here renders
+
+
+def unit(v):
+    v = np.asarray(v, np.float64)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def reference(p, n, r, intr, rim_px=0.5, min_cos=0.1):
+    """Per pixel centre ray: the nearest disk hit (float64). Also a mask of unreliable pixels: near
+    the rim of a disk at or in front of the winner, nearly edge-on there, or a depth near-tie; and
+    a mask of pixels whose ray meets two or more disks."""
+    p, n, r = (np.asarray(a, np.float64) for a in (p, n, r))
+    u, v = np.meshgrid(np.arange(intr.width), np.arange(intr.height))
+    rays_x = ((u - intr.cx) / intr.fx).reshape(-1, 1)
+    rays_y = ((v - intr.cy) / intr.fy).reshape(-1, 1)
+    out = [], [], []
+    for rows in np.array_split(np.arange(len(rays_x)), 16):   # chunks keep temporaries small
+        dx, dy = rays_x[rows], rays_y[rows]
+        dd = dx * dx + dy * dy + 1.0
+        dn = dx * n[:, 0] + dy * n[:, 1] + n[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (p * n).sum(1) / dn                      # (pixels, disks) intersection depth
+            dist2 = t * t * dd - 2 * t * (dx * p[:, 0] + dy * p[:, 1] + p[:, 2]) + (p * p).sum(1)
+            dist = np.sqrt(np.maximum(dist2, 0.0))
+            hit = (t > 0) & (dist <= r)
+            depth = np.where(hit, t, np.inf)
+            two = np.argsort(depth, axis=1)[:, :2]
+            best = np.take_along_axis(depth, two, 1)
+            cos = np.abs(dn) / np.sqrt(dd)
+            footprint = t / intr.focal_px / np.maximum(cos, 1e-6)   # metres per pixel on the disk
+            relevant = (t > 0) & (t <= best[:, :1] + 1e-6)
+            unsure = (relevant & ((np.abs(dist - r) < rim_px * footprint)
+                                  | (hit & (cos < min_cos)))).any(1)
+            unsure |= best[:, 1] - best[:, 0] < 1e-5
+        out[0].append(np.where(np.isfinite(best[:, 0]), two[:, 0], -1))
+        out[1].append(unsure)
+        out[2].append(hit.sum(1) >= 2)
+    shape = (intr.height, intr.width)
+    return tuple(np.concatenate(o).reshape(shape) for o in out)
+
+
+def scene(seed=3):
+    """A few hundred mostly camera-facing disks, plus a tilted disk crossing a fronto-parallel one
+    (so the winner changes inside the overlap) and a disk near grazing incidence."""
+    rng = np.random.default_rng(seed)
+    m = 300
+    z = rng.uniform(0.7, 2.0, m)
+    u = rng.uniform(0, K.width, m)
+    v = rng.uniform(0, K.height, m)
+    p = np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], 1)
+    n = unit(-unit(p) + rng.normal(scale=0.4, size=(m, 3)))
+    r = rng.uniform(0.01, 0.03, m)
+    extra_p = [[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.25, -0.15, 1.2]]
+    extra_n = [[0.0, 0.0, -1.0], unit([np.sin(1.2), 0.0, -np.cos(1.2)]),   # tilted 69 degrees
+               unit(np.cross([0.25, -0.15, 1.2], [0.0, 1.0, 0.0]) + [0.0, 0.0, -0.05])]
+    p = np.vstack([p, extra_p]).astype(np.float32)
+    n = np.vstack([n, extra_n]).astype(np.float32)
+    r = np.r_[r, 0.08, 0.07, 0.05].astype(np.float32)
+    return p, n, r
+
+
+def test_solver_maps_match_ray_disk_reference():
+    p, n, r = scene()
+    maps = render_solver_maps(p, n, r, K)
+    assert maps.index.shape == (K.height, K.width) and maps.index.dtype == np.int32
+    assert maps.vertex.shape == (K.height, K.width, 3) and maps.intrinsics == K
+    ref, unsure, overlap = reference(p, n, r, K)
+    covered = ref >= 0
+    checked = covered & ~unsure
+    assert checked.sum() > 0.6 * covered.sum()
+    agree = (maps.index == ref)[checked].mean()
+    assert agree >= 0.99, agree
+    # Plenty of the checked pixels see two or more disks, so the per-pixel depth test matters.
+    assert (checked & overlap).sum() > 2000
+    assert (maps.index == ref)[checked & overlap].mean() >= 0.99
+    # The tilted disk and the fronto-parallel one cross: each wins on its own side.
+    a, b = len(p) - 3, len(p) - 2
+    row = int(round(K.cy))
+    cols = np.arange(int(K.cx) - 6, int(K.cx) + 16)   # the tilted disk spans about +-7.6 px
+    line = maps.index[row, cols]
+    assert (line[cols < K.cx - 2] == b).all() and (line[cols > K.cx + 2] == a).all()
+    assert (maps.index[(ref == -1) & ~unsure] == -1).all()
+    hit = maps.index >= 0
+    np.testing.assert_array_equal(maps.vertex[hit], p[maps.index[hit]])
+    np.testing.assert_array_equal(maps.normal[hit], n[maps.index[hit]])
+    assert not maps.vertex[~hit].any()
+
+
+def test_selected_surfels_keep_full_array_indices():
+    p, n, r = scene(seed=4)
+    chosen = np.flatnonzero(np.arange(len(p)) % 3 != 1)
+    maps = render_solver_maps(p, n, r, K, indices=chosen)
+    ref, unsure, _ = reference(p[chosen], n[chosen], r[chosen], K)
+    ref = np.where(ref >= 0, chosen[np.maximum(ref, 0)], -1)
+    checked = (ref >= 0) & ~unsure
+    assert (maps.index == ref)[checked].mean() >= 0.99
+    assert np.isin(maps.index[maps.index >= 0], chosen).all()
+    assert (render_solver_maps(p, n, r, K, indices=np.array([], int)).index == -1).all()
+
+
+def test_fill_surfels_show_only_where_the_first_set_leaves_pixels_empty():
+    p, n, r = scene(seed=5)
+    first = np.flatnonzero(np.arange(len(p)) % 2 == 0)
+    fill = np.flatnonzero(np.arange(len(p)) % 2 == 1)
+    maps = render_solver_maps(p, n, r, K, indices=first, fill_indices=fill)
+    ref_first, unsure_first, _ = reference(p[first], n[first], r[first], K)
+    ref_fill, unsure_fill, _ = reference(p[fill], n[fill], r[fill], K)
+    ref = np.where(ref_first >= 0, first[np.maximum(ref_first, 0)],
+                   np.where(ref_fill >= 0, fill[np.maximum(ref_fill, 0)], -1))
+    checked = (ref >= 0) & ~unsure_first & ~(unsure_fill & (ref_first < 0))
+    assert (maps.index == ref)[checked].mean() >= 0.99
+    # The fill set would win the depth test on many of the first set's pixels, and does not.
+    both = render_solver_maps(p, n, r, K, indices=np.concatenate([first, fill]))
+    occluded = (ref_first >= 0) & np.isin(both.index, fill) & ~unsure_first
+    assert occluded.sum() > 500
+    assert np.isin(maps.index[occluded], first).all()
+    assert np.isin(maps.index[(ref_first < 0) & (ref_fill >= 0) & ~unsure_fill], fill).mean() >= 0.99
+
+
+@pytest.mark.parametrize("centre_uv", [(159.5, 119.5), (60.0, 200.0)])
+def test_fronto_parallel_disk_area(centre_uv):
+    z, radius = 1.3, 0.06
+    p = np.array([[(centre_uv[0] - K.cx) / K.fx * z, (centre_uv[1] - K.cy) / K.fy * z, z]])
+    maps = render_solver_maps(p, [[0.0, 0.0, -1.0]], [radius], K)
+    expected = np.pi * radius ** 2 * K.fx * K.fy / z ** 2
+    covered = (maps.index == 0).sum()
+    assert abs(covered / expected - 1) < 0.03, (covered, expected)
+    # Centred where it should be (row 0 = top).
+    vv, uu = np.nonzero(maps.index == 0)
+    assert abs(uu.mean() - centre_uv[0]) < 0.5 and abs(vv.mean() - centre_uv[1]) < 0.5
+
+
+def test_grazing_disks_stay_bounded():
+    # Edge-on (its plane holds the camera centre) and 0.5 degrees off edge-on, between a wall
+    # behind and, in a second render, a wall in front.
+    c = np.array([0.1, 0.05, 1.0])
+    edge = unit(np.cross(c, [0.0, 1.0, 0.0]))
+    near_edge = unit(edge + 0.009 * unit(-c))
+    wall_back = [[0.1, 0.05, 1.2], [0.0, 0.0, -1.0]]
+    wall_front = [[0.1, 0.05, 0.9], [0.0, 0.0, -1.0]]
+    for disk_n in (edge, near_edge):
+        p = np.array([c, wall_back[0]])
+        maps = render_solver_maps(p, np.array([disk_n, wall_back[1]]), [0.05, 0.2], K)
+        strip = maps.index == 0
+        diameter_px = 2 * 0.05 * K.fx / c[2]
+        assert strip.sum() <= 2 * diameter_px           # a thin strip at most
+        assert (maps.index >= 0).sum() > 0.95 * np.pi * (0.2 * K.fx / 1.2) ** 2 * K.fy / K.fx
+        p = np.array([c, wall_front[0]])
+        maps = render_solver_maps(p, np.array([disk_n, wall_front[1]]), [0.05, 0.2], K)
+        assert not (maps.index == 0).any()              # hidden behind the nearer wall
+
+
+def test_no_surfels_or_all_behind_the_camera_give_empty_maps():
+    p, n, r = scene()
+    for pos in (np.zeros((0, 3)), -p, p * 1e-3):
+        maps = render_solver_maps(pos, n[:len(pos)], r[:len(pos)], K)
+        assert (maps.index == -1).all() and not maps.vertex.any() and not maps.normal.any()

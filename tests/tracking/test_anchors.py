@@ -1,0 +1,271 @@
+"""Rest anchors (tracking/anchors.py, tracking/terms/rest_anchors.py): their Jacobians (the nodes' and the common motion's), release in
+the solve under a pose error, nodes out of the solve following the common motion, settling,
+following the field's nodes, and factoring the camera motion out of the anchored nodes."""
+import numpy as np
+
+from surfelwarp.tracking.anchors import (AnchorParams, AnchorTerm, NodeAnchors, anchor_residuals, deviation_m,
+                                         follow_motion, seen_deviation_m, seen_directions)
+from surfelwarp.deform.warp_field import WarpField, apply_update, extend, skin, to_global, to_local
+from surfelwarp.geometry.camera import axial_noise_sigma_m
+from surfelwarp.geometry.se3 import se3_exp
+from surfelwarp.tracking.terms.rest_anchors import anchor_energy, anchor_terms, turn_about
+from surfelwarp.tracking.tracker import factor_rigid_motion
+
+from test_gauss_newton import INTR, T_CW, Problem, bend, solve_nonrigid
+
+
+def sheet_field(n=400, seed=0):
+    rng = np.random.default_rng(seed)
+    return WarpField.from_points(rng.uniform(-0.3, 0.3, (n, 3)) * [1, 1, 0.1])
+
+
+def test_anchor_blocks_and_gradient_match_finite_differences():
+    rng = np.random.default_rng(1)
+    field = apply_update(sheet_field(), rng.normal(size=(len(sheet_field().nodes), 6)) * 0.05)
+    m = field.num_nodes
+    rest = apply_update(field, rng.normal(size=(m, 6)) * 0.02).transforms
+    term = AnchorTerm(rng.uniform(0.5, 2.0, m), rest, np.full(m, np.inf))
+    blocks, g, border = anchor_terms(field, term)
+    assert border is None
+    h = 1e-6
+    J = np.zeros((m, 4, 3, 6))
+    for c in range(6):
+        xi = np.zeros((m, 6))
+        xi[:, c] = h               # nodes are independent: one pass per twist component
+        plus = anchor_residuals(apply_update(field, xi).transforms, rest, field.sigma_m)[0]
+        minus = anchor_residuals(apply_update(field, -xi).transforms, rest, field.sigma_m)[0]
+        J[..., c] = (plus - minus) / (2 * h)
+    r, _ = anchor_residuals(field.transforms, rest, field.sigma_m)
+    mu = term.mu[:, None, None]
+    numeric_blocks = mu * np.einsum("makc,makd->mcd", J, J)
+    numeric_g = mu[:, :, 0] * np.einsum("makc,mak->mc", J, r)
+    err_b = np.abs(blocks - numeric_blocks).max() / np.abs(numeric_blocks).max()
+    err_g = np.abs(g - numeric_g).max() / np.abs(numeric_g).max()
+    print(f"anchor Jacobian vs central differences: blocks {err_b:.1e}, gradient {err_g:.1e}")
+    assert err_b < 1e-6 and err_g < 1e-6
+    # The gradient is that of half the energy.
+    xi = np.zeros((m, 6))
+    xi[3, 4] = h
+    dE = (anchor_energy(apply_update(field, xi), term) - anchor_energy(apply_update(field, -xi), term)) / (2 * h)
+    assert abs(0.5 * dE - g[3, 4]) < 1e-6 * np.abs(g).max()
+
+
+def test_common_motion_terms_match_finite_differences():
+    """The blocks coupling node twists to the common motion's twist zeta, zeta's own block and
+    gradient, against central differences of the residuals L_j y_a - G Rest_j y_a."""
+    rng = np.random.default_rng(2)
+    field = sheet_field(60)
+    m = field.num_nodes
+    field = apply_update(field, rng.normal(size=(m, 6)) * 0.05)
+    rest = apply_update(field, rng.normal(size=(m, 6)) * 0.02).transforms
+    term = AnchorTerm(rng.uniform(0.5, 2.0, m), rest, np.full(m, np.inf))
+    G = se3_exp(np.array([0.03, -0.02, 0.05, 0.01, 0.02, -0.01]))
+    center = np.array([0.1, -0.05, 0.9])
+    _, _, (border, own, gz) = anchor_terms(field, term, G, center)
+
+    def residuals(transforms, motion):
+        return anchor_residuals(transforms, follow_motion(rest, field.nodes, motion), field.sigma_m)[0]
+
+    h = 1e-6
+    Jz = np.zeros((m, 4, 3, 6))
+    Jn = np.zeros((m, 4, 3, 6))
+    for c in range(6):
+        e = np.zeros(6)
+        e[c] = h
+        Jz[..., c] = (residuals(field.transforms, turn_about(center, e) @ G)
+                      - residuals(field.transforms, turn_about(center, -e) @ G)) / (2 * h)
+        xi = np.tile(e, (m, 1))
+        Jn[..., c] = (residuals(apply_update(field, xi).transforms, G)
+                      - residuals(apply_update(field, -xi).transforms, G)) / (2 * h)
+    r = residuals(field.transforms, G)
+    mu = term.mu
+    numeric = (np.einsum("m,makc,makd->mcd", mu, Jn, Jz), np.einsum("m,makc,makd->cd", mu, Jz, Jz),
+               np.einsum("m,makc,mak->c", mu, Jz, r))
+    errors = [np.abs(a - b).max() / np.abs(b).max() for a, b in zip((border, own, gz), numeric)]
+    print("common motion terms vs central differences: " + ", ".join(f"{e:.1e}" for e in errors))
+    assert max(errors) < 1e-6
+
+
+def half_bend(p):
+    """The sheet's left half rolls away (up to ~9 cm), its right half stays where it was."""
+    return np.where((p[..., 0] < 0)[..., None], bend(p, shift=(0.0, 0.0, 0.0)), p)
+
+
+# A camera pose error: the whole scene appears moved by this (6 mm, 0.3 deg).
+POSE_ERROR = se3_exp(np.array([0.0, 0.005, 0.0, 0.006, 0.0, -0.002]))
+
+
+def seen_off_pose(p):
+    return p @ POSE_ERROR[:3, :3].T + POSE_ERROR[:3, 3]
+
+
+def half_bend_seen_off_pose(p):
+    return seen_off_pose(half_bend(p))
+
+
+def test_the_solve_releases_moving_nodes_and_holds_the_still_ones():
+    """Under a pose error the still half moves rigidly with the anchors' common motion and stays
+    anchored; the rolling half is released. Anchored to rest itself, the still half would be
+    released too (the pose error moves it beyond 2 sigma)."""
+    prob = Problem(moved=half_bend_seen_off_pose)
+    m = prob.field.num_nodes
+    release = 2 * axial_noise_sigma_m(1.0)
+    anchor = AnchorTerm(np.ones(m), prob.field.transforms.copy(), np.full(m, release))
+    field, res = solve_nonrigid(prob.field, prob.points, prob.normals, prob.knn, prob.weights, *prob.maps,
+                                INTR, T_CW, anchor=anchor)
+    nodes = prob.field.nodes.astype(np.float64)
+    moves = np.linalg.norm(half_bend(nodes) - nodes, axis=1)
+    err = prob.error(field)
+    still = nodes[:, 0] > 0.1
+    followed = deviation_m(field.transforms[still], follow_motion(anchor.rest[still], nodes[still], POSE_ERROR),
+                           field.sigma_m)
+    print(f"half bend off pose: {res.released.sum()} of {m} nodes released; error mean {err.mean() * 1000:.2f} mm;"
+          f" still nodes within {followed.max() * 1000:.2f} mm of the pose error")
+    assert res.released[moves > 0.01].all()
+    assert not res.released[still].any()
+    assert followed.max() < 3e-4
+    assert err.mean() < 0.003
+    # Every iteration's energy includes the common motion: converged, the last one is the
+    # returned field's (an energy without it would stay well above the final one).
+    assert res.converged and abs(res.energies[-1] - res.energies[-2]) < 0.05 * res.energies[-1]
+    absolute = AnchorTerm(anchor.mu, anchor.rest, anchor.release_m, common_motion=False)
+    _, res_abs = solve_nonrigid(prob.field, prob.points, prob.normals, prob.knn, prob.weights, *prob.maps,
+                                INTR, T_CW, anchor=absolute)
+    assert res_abs.released[still].mean() > 0.9
+    # Nodes without that much support of their own are never released.
+    gated = AnchorTerm(anchor.mu, anchor.rest, anchor.release_m, release_support=np.inf)
+    _, res_gated = solve_nonrigid(prob.field, prob.points, prob.normals, prob.knn, prob.weights, *prob.maps,
+                                  INTR, T_CW, anchor=gated)
+    assert not res_gated.released.any()
+    # With everything anchored and nothing released the bend could not be followed.
+    stiff = AnchorTerm(np.full(m, 1e3), anchor.rest, np.full(m, np.inf))
+    held, _ = solve_nonrigid(prob.field, prob.points, prob.normals, prob.knn, prob.weights, *prob.maps,
+                             INTR, T_CW, anchor=stiff)
+    assert prob.error(held).mean() > 5 * err.mean()
+
+
+def test_seen_directions_of_a_plane_a_cylinder_and_a_ball():
+    """Known answers: pairs on a plane see its normal only, on a cylinder all but its axis, on a
+    ball every direction; a node without pairs sees none. The release distance then counts a
+    slide along the plane as nothing and a move along its normal in full."""
+    rng = np.random.default_rng(3)
+    c = 600
+    ball = rng.normal(size=(c, 3))
+    angle = rng.uniform(0, 2 * np.pi, c)
+    normals = np.concatenate([np.tile([0.0, 0.0, 1.0], (c, 1)),
+                              np.stack([np.cos(angle), np.sin(angle), np.zeros(c)], 1),
+                              ball / np.linalg.norm(ball, axis=1, keepdims=True)])
+    knn = np.repeat([[0, 0], [1, 1], [2, 2]], c, axis=0)       # node 3 has no pairs
+    weights = rng.uniform(0.1, 1.0, (3 * c, 2))
+    seen = seen_directions(4, knn, weights, normals)
+    np.testing.assert_allclose(seen[0], np.diag([0.0, 0.0, 1.0]), atol=1e-12)
+    np.testing.assert_allclose(seen[1], np.diag([1.0, 1.0, 0.0]), atol=0.15)
+    np.testing.assert_allclose(seen[2], np.eye(3), atol=0.2)
+    np.testing.assert_array_equal(seen[3], 0.0)
+    for e in seen[:3]:
+        assert np.isclose(np.linalg.eigvalsh(e)[-1], 1.0)
+    sigma = 0.02
+    rest = np.tile(np.eye(4), (4, 1, 1))
+    slide, lift = rest.copy(), rest.copy()
+    slide[:, :3, 3] = [0.01, -0.02, 0.0]
+    lift[:, :3, 3] = [0.0, 0.0, 0.01]
+    assert seen_deviation_m(slide, rest, sigma, seen)[0] < 1e-9
+    np.testing.assert_allclose(seen_deviation_m(lift, rest, sigma, seen)[[0, 2]], 0.01, rtol=0.2)
+    np.testing.assert_allclose(deviation_m(slide, rest, sigma), np.hypot(0.01, 0.02))
+    assert seen_deviation_m(slide, rest, sigma, seen)[3] == 0.0
+
+
+def test_nodes_outside_the_solve_follow_the_common_motion():
+    """A still sheet seen under a pose error, with part of the field 1 m to the side, out of
+    view and out of the solve: its nodes move with the common motion as the seen ones do (as
+    rigid ICP would have moved them), the anchored ones to rest, a released one as it was."""
+    prob = Problem(moved=seen_off_pose)
+    s, t = np.meshgrid(np.arange(1.0, 1.3, 0.01), np.arange(-0.2, 0.2, 0.01))
+    aside = np.stack([s, t, np.ones_like(s)], -1).reshape(-1, 3)
+    field = WarpField.from_points(np.concatenate([prob.points, aside]).astype(np.float32))
+    knn, weights = skin(prob.points, field.nodes, 4, field.sigma_m)
+    m = field.num_nodes
+    out = field.nodes[:, 0] > 0.9
+    loose = np.flatnonzero(out)[0]                      # released in an earlier frame
+    mu = np.ones(m)
+    mu[loose] = 0.0
+    start = field.transforms.copy()
+    start[loose] = se3_exp(np.array([0.0, 0.0, 0.1, 0.01, 0.0, 0.0]))
+    anchor = AnchorTerm(mu, field.transforms.copy(), np.full(m, 2 * axial_noise_sigma_m(1.0)))
+    solved, res = solve_nonrigid(field.with_transforms(start), prob.points, prob.normals, knn, weights, *prob.maps,
+                                 INTR, T_CW, anchor=anchor)
+    nodes = field.nodes.astype(np.float64)
+    held = out & (mu > 0)
+    rest_err = deviation_m(solved.transforms[held], follow_motion(anchor.rest[held], nodes[held], POSE_ERROR),
+                           field.sigma_m)
+    loose_err = deviation_m(solved.transforms[[loose]], follow_motion(start[[loose]], nodes[[loose]], POSE_ERROR),
+                            field.sigma_m)
+    print(f"{held.sum()} anchored nodes out of the solve within {rest_err.max() * 1000:.2f} mm of the pose error,"
+          f" the released one within {loose_err[0] * 1000:.2f} mm")
+    assert not res.released.any()
+    assert rest_err.max() < 3e-4 and loose_err[0] < 3e-4
+
+
+def test_released_nodes_settle_after_staying_put():
+    field = sheet_field()
+    m = field.num_nodes
+    params = AnchorParams(settle_sigmas=1.0, settle_frames=3)
+    depth = np.ones(m)
+    sigma = axial_noise_sigma_m(1.0)
+    state = NodeAnchors.at_rest(field).release(np.arange(m) < m // 2)
+    rng = np.random.default_rng(3)
+    moved = se3_exp(np.tile([0, 0, 0, 0.02, 0, 0], (m, 1))) @ field.transforms
+    drifting = np.arange(m) < m // 8            # keeps moving 2 sigma a frame
+    # Creeping 0.6 sigma a frame: under 1 sigma from frame to frame, but not near one place.
+    creeping = (np.arange(m) >= m // 8) & (np.arange(m) < m // 4)
+    for frame in range(4):     # frame 0 arrives 2 cm away; frames 1-3 stay (or drift on)
+        jitter = np.zeros((m, 6))
+        jitter[:, 3:] = rng.uniform(-0.1, 0.1, (m, 3)) * sigma
+        walk = np.zeros((m, 6))
+        walk[drifting, 5] = 2 * sigma * (frame + 1)
+        walk[creeping, 5] = 0.6 * sigma * (frame + 1)
+        current = field.with_transforms(se3_exp(jitter + walk) @ moved)
+        state = state.settle(current, depth, params)
+        if frame < 3:
+            assert state.released[: m // 2].all()
+    assert state.released[drifting | creeping].all()
+    back = (np.arange(m) >= m // 4) & (np.arange(m) < m // 2)
+    assert not state.released[back].any()
+    np.testing.assert_allclose(state.rest[back], current.transforms[back])
+    np.testing.assert_allclose(state.rest[m // 2:], field.transforms[m // 2:])
+
+
+def test_anchors_follow_extension_and_restart_on_a_new_field():
+    field = sheet_field()
+    m = field.num_nodes
+    left = field.nodes[:, 0] < 0
+    state = NodeAnchors.at_rest(field).release(left)
+    assert state.follow(field) is state
+    grown, first = extend(field, np.array([[-0.45, 0.0, 0.0], [0.45, 0.0, 0.0]], np.float32))
+    assert grown.num_nodes == m + 2 and first == m
+    followed = state.follow(grown)
+    assert not followed.released[m:].any() and followed.released[:m].sum() == left.sum()
+    np.testing.assert_allclose(followed.rest[m:], grown.transforms[m:])
+    fresh = state.follow(sheet_field(seed=9))
+    assert not fresh.released.any()
+
+
+def test_factoring_against_rest_moves_the_camera_motion_into_the_pose():
+    """Anchored nodes rest bent (their rest transforms) and all moved by A, the released ones
+    moved anyhow: fitted from the rest positions of the anchored nodes the factor is A and they
+    return to rest; fitted from the nodes themselves their rest bend would leak into it."""
+    rng = np.random.default_rng(4)
+    field = sheet_field(2000)
+    m = field.num_nodes
+    rest = apply_update(field, np.hstack([np.zeros((m, 3)), rng.normal(size=(m, 3)) * 0.01])).transforms
+    released = field.nodes[:, 0] < -0.1
+    A = se3_exp(np.array([0.02, -0.03, 0.01, 0.01, 0.004, -0.006]))
+    G = A @ to_global(rest, field.nodes)
+    G[released] = to_global(apply_update(field, rng.normal(size=(m, 6)) * 0.1).transforms, field.nodes)[released]
+    moved = field.with_transforms(to_local(G, field.nodes))
+    support = np.where(released, 0.0, rng.uniform(0.5, 2.0, m))
+    factored, B = factor_rigid_motion(moved, support, field.nodes + rest[:, :3, 3])
+    np.testing.assert_allclose(B, A, atol=1e-9)
+    assert deviation_m(factored.transforms[~released], rest[~released], field.sigma_m).max() < 1e-6
+    _, C = factor_rigid_motion(moved, support)
+    assert np.abs(C - A).max() > 1e-3

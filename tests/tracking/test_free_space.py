@@ -1,0 +1,158 @@
+"""The free-space term (tracking/free_space.py, tracking/terms/free_space.py): model points where the camera saw through them."""
+import numpy as np
+
+from surfelwarp.deform.warp_field import WarpField, WarpFieldParams, apply_update, skin, warp
+from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.geometry.se3 import se3_exp
+from surfelwarp.tracking.blend_jacobian import data_jacobian
+from surfelwarp.tracking.free_space import FreeSpace, SilhouetteParams
+from surfelwarp.tracking.gauss_newton import NonRigidParams, solve_nonrigid
+
+INTR = Intrinsics(300.0, 300.0, 159.5, 119.5, 320, 240)
+P = SilhouetteParams()
+
+
+def square_depth(z=1.0, half_px=60, hole_px=0, behind=None):
+    """A square of depth z in the middle of an empty image, with an optional square hole of
+    hole_px pixels a side in its middle; `behind`: the rest of the image sees a wall that far."""
+    depth = np.zeros((INTR.height, INTR.width), np.float32)
+    if behind is not None:
+        depth[:] = behind
+    r, c = int(INTR.cy), int(INTR.cx)
+    depth[r - half_px:r + half_px, c - half_px:c + half_px] = z
+    if hole_px:
+        h = hole_px // 2
+        depth[r - h:r - h + hole_px, c - h:c - h + hole_px] = 0
+    return depth
+
+
+def at_pixel(u, v, z=1.0):
+    """World points (3, N) projecting to pixels (u, v) at depth z (identity camera)."""
+    u, v = np.atleast_1d(u).astype(float), np.atleast_1d(v).astype(float)
+    return np.stack([(u - INTR.cx) / INTR.fx * z, (v - INTR.cy) / INTR.fy * z, np.full(len(u), z)])
+
+
+def test_points_past_the_silhouette_are_pulled_back_by_their_distance():
+    space = FreeSpace(square_depth(), INTR, np.eye(4))
+    last = int(INTR.cx) + 59                       # the square's last column
+    u = np.array([last - 20, last, last + 11, last + 31])
+    r, grad = space.residuals(at_pixel(u, np.full(4, INTR.cy)))
+    assert r[0] == 0 and r[1] == 0                 # on the observed surface
+    # Outside: (distance in pixels - margin) at 1 m, f = 300 (the distance transform is exact
+    # along a row to within its 5x5 mask's error).
+    np.testing.assert_allclose(r[2:], (np.array([11.0, 31.0]) - P.margin_px) / INTR.fx, rtol=0.03)
+    # The gradient points away from the square (+x), with the length of the pixel scale.
+    assert grad[0, 2] > 0 and grad[0, 3] > 0
+    np.testing.assert_allclose(np.abs(grad[0, 2:]), 1.0, rtol=0.05)
+
+
+def test_holes_and_the_image_border_are_not_free_space():
+    space = FreeSpace(square_depth(hole_px=2 * P.hole_px - 2), INTR, np.eye(4))
+    r, _ = space.residuals(at_pixel(np.array([INTR.cx]), np.array([INTR.cy])))
+    assert r[0] == 0                               # a dropout inside the surface pulls nothing
+    big = FreeSpace(square_depth(hole_px=4 * P.hole_px + 10), INTR, np.eye(4))
+    assert big.residuals(at_pixel(np.array([INTR.cx]), np.array([INTR.cy])))[0][0] > 0
+    # Near the image edge nothing is judged, though the camera saw nothing there.
+    r, _ = space.residuals(at_pixel(np.array([5.0, 40.0]), np.array([INTR.cy, INTR.cy])))
+    assert r[0] == 0 and r[1] > 0
+
+
+def test_a_surface_in_front_hides_its_unmeasured_rim_and_the_far_clip_is_free_space():
+    """No depth right beside a nearer surface may be that surface seen edge-on: not free
+    space for points behind it. Depth dropped by the far clip is free space in front of it."""
+    depth = square_depth(z=1.0, half_px=60)
+    r, c = int(INTR.cy), int(INTR.cx)
+    depth[r - 30:r + 30, c + 60:c + 70] = 0.8      # a nearer strip along the square's right edge
+    space = FreeSpace(depth, INTR, np.eye(4))
+    beside = at_pixel(np.array([c + 70 + P.occluder_px // 2]), np.array([r]), z=1.0)
+    assert space.residuals(beside)[0][0] == 0
+    far_out = at_pixel(np.array([c + 70 + 2 * P.occluder_px]), np.array([r]), z=1.0)
+    assert space.residuals(far_out)[0][0] > 0
+    # A wall behind, too far for the clip, seen through a 10-pixel slit in a nearer wall: a
+    # hole while its depth is merely missing, free space once known to lie beyond the clip.
+    walls = np.full(depth.shape, 1.0, np.float32)
+    slit = np.zeros(depth.shape, bool)
+    slit[:, c - 5:c + 5] = True
+    walls[slit] = 0
+    in_slit = at_pixel(np.array([c]), np.array([r]), z=0.99)     # on the wall, were it there
+    assert FreeSpace(walls, INTR, np.eye(4)).residuals(in_slit)[0][0] == 0
+    assert FreeSpace(walls, INTR, np.eye(4), beyond=slit).residuals(in_slit)[0][0] > 0
+
+
+def test_a_wall_far_behind_a_point_is_seen_through_and_one_near_is_not():
+    far = FreeSpace(square_depth(behind=1.5), INTR, np.eye(4))
+    near = FreeSpace(square_depth(behind=1.0 + 0.5 * P.depth_margin_m), INTR, np.eye(4))
+    outside = at_pixel(np.array([INTR.cx + 90]), np.array([INTR.cy]))
+    assert far.residuals(outside)[0][0] > 0
+    assert near.residuals(outside)[0][0] == 0
+    # A point behind the observed surface is occluded, not seen through.
+    assert far.residuals(at_pixel(np.array([INTR.cx + 90]), np.array([INTR.cy]), z=1.6))[0][0] == 0
+
+
+def test_residual_gradient_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    T = se3_exp(np.array([0.05, -0.03, 0.02, 0.04, -0.02, 0.03]))      # camera off the world origin
+    space = FreeSpace(square_depth(), INTR, T)
+    q = at_pixel(rng.uniform(INTR.cx + 70, INTR.cx + 120, 30), rng.uniform(INTR.cy - 50, INTR.cy + 50, 30),
+                 z=rng.uniform(0.95, 1.0, 30))
+    x = T[:3, :3] @ q + T[:3, 3:]                   # world points the camera sees outside the square
+    r, grad = space.residuals(x)
+    assert (r > 0).all()
+    h = 1e-6
+    numeric = np.stack([(space.residuals(x + h * e[:, None])[0] - space.residuals(x - h * e[:, None])[0]) / (2 * h)
+                        for e in np.eye(3)])
+    rel = np.linalg.norm(grad - numeric) / np.linalg.norm(numeric)
+    print(f"free-space gradient vs central differences: relative error {rel:.1e}")
+    assert rel < 1e-6
+
+
+def test_the_terms_node_jacobian_matches_finite_differences():
+    """The solve uses the data term's Jacobian with the residual's gradient as the normal:
+    d r(W(x)) / d xi_j, checked against the residual of the warped points."""
+    rng = np.random.default_rng(1)
+    points = np.stack(np.meshgrid(np.linspace(0.2, 0.4, 12), np.linspace(-0.1, 0.1, 12)), -1).reshape(-1, 2)
+    points = np.column_stack([points, np.full(len(points), 0.97)])
+    field = WarpField.from_points(points, WarpFieldParams(node_radius_m=0.05))
+    field = apply_update(field, rng.normal(size=(field.num_nodes, 6)) * [0.02, 0.02, 0.02, 0.003, 0.003, 0.003])
+    knn, w = skin(points, field.nodes, 4, field.sigma_m)
+    space = FreeSpace(square_depth(), INTR, np.eye(4))
+
+    def residuals(f):
+        live, _ = warp(points, None, knn, w, f)
+        return space.residuals(live.T)
+
+    r, grad = residuals(field)
+    assert (r > 0).all()
+    J = data_jacobian(field, points, knn, w.astype(np.float64), grad.T)     # (C, k, 6) per slot
+    node, h = int(knn[0, 0]), 1e-6
+    for m in range(6):
+        xi = np.zeros((field.num_nodes, 6))
+        xi[node, m] = h
+        numeric = (residuals(apply_update(field, xi))[0] - residuals(apply_update(field, -xi))[0]) / (2 * h)
+        analytic = np.sum(np.where((knn == node)[..., None], J, 0.0), axis=1)[:, m]
+        assert np.abs(analytic - numeric).max() < 1e-6 * max(np.abs(numeric).max(), 1e-3)
+
+
+def test_the_solve_pulls_a_sheet_back_under_its_silhouette():
+    """A flat patch observed where it is, its template shifted 2 cm to the right along itself:
+    depth alone does not see the slide; the free-space term brings it back."""
+    u, v = np.meshgrid(np.arange(INTR.cx - 50, INTR.cx + 50), np.arange(INTR.cy - 50, INTR.cy + 50))
+    points = at_pixel(u.ravel(), v.ravel()).T
+    depth = square_depth(half_px=50)
+    vertex = INTR.backproject(depth)
+    normal = np.where(depth[..., None] > 0, np.array([0.0, 0.0, -1.0], np.float32), 0.0)
+    valid = depth > 0
+    field = WarpField.from_points(points, WarpFieldParams())
+    knn, w = skin(points, field.nodes, 4, field.sigma_m)
+    shifted = field.with_transforms(np.tile(se3_exp(np.array([0, 0, 0, 0.02, 0, 0])), (field.num_nodes, 1, 1)))
+    normals = np.tile([0.0, 0.0, -1.0], (len(points), 1))
+    for weight, expected in ((0.0, "stays"), (1.0, "back")):
+        params = NonRigidParams(silhouette=SilhouetteParams(weight=weight), max_iterations=20)
+        solved, res = solve_nonrigid(shifted, points, normals, knn, w, vertex, normal, valid, INTR, np.eye(4), params)
+        live, _ = warp(points, None, knn, w, solved)
+        slide = float(np.mean(live[:, 0] - points[:, 0]))
+        if expected == "stays":
+            assert slide > 0.019 and res.silhouette_points == 0
+        else:
+            assert abs(slide) < 0.004, slide
+            assert res.alignment.unsupported_fraction < 0.05

@@ -1,0 +1,163 @@
+import time
+
+import numpy as np
+import pytest
+
+from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.geometry.se3 import invert, se3_exp, so3_log
+from surfelwarp.io.sequence import open_sequence
+from surfelwarp.preprocess import PreprocessParams, preprocess
+from surfelwarp.tracking.rigid_icp import RigidParams, halved, rigid_icp
+
+from conftest import shared_data
+
+INTR = Intrinsics(300.0, 300.0, 159.5, 119.5, 320, 240)
+
+
+def pose_error(T, T_true) -> tuple[float, float]:
+    """Translation error in metres and rotation error in degrees."""
+    E = invert(T_true) @ T
+    return float(np.linalg.norm(E[:3, 3])), float(np.rad2deg(np.linalg.norm(so3_log(E[:3, :3]))))
+
+
+def scene_depth(T_camera_to_world: np.ndarray, intr: Intrinsics = INTR) -> np.ndarray:
+    """Ray-cast depth of a room corner (tilted back wall, floor, side wall) with two spheres
+    and a box, all in world coordinates; rays have unit z in the camera so t is the depth."""
+    u, v = np.meshgrid(np.arange(intr.width), np.arange(intr.height))
+    d = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones(u.shape)], -1)
+    d = d @ T_camera_to_world[:3, :3].T
+    o = T_camera_to_world[:3, 3]
+    hits = []
+    for n, c in [((0.15, 0.0, 1.0), 2.4), ((0.0, 1.0, 0.1), 0.7), ((1.0, 0.0, 0.2), -0.9)]:
+        n = np.asarray(n) / np.linalg.norm(n)
+        dn = d @ n
+        t = (c - o @ n) / np.where(np.abs(dn) > 1e-9, dn, 1e-9)
+        hits.append(np.where(t > 0, t, np.inf))
+    for centre, r in [((0.3, 0.1, 1.6), 0.25), ((-0.45, -0.25, 1.9), 0.2)]:
+        oc = o - np.asarray(centre)
+        a, b, k = np.sum(d * d, -1), d @ oc, oc @ oc - r * r
+        disc = b * b - a * k
+        t = (-b - np.sqrt(np.maximum(disc, 0))) / a
+        hits.append(np.where((disc > 0) & (t > 0), t, np.inf))
+    lo, hi = np.array([0.05, -0.55, 1.3]), np.array([0.4, -0.2, 1.6])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - o) / d, (hi - o) / d
+    near = np.nanmax(np.minimum(t1, t2), -1)
+    far = np.nanmin(np.maximum(t1, t2), -1)
+    hits.append(np.where((near < far) & (near > 0), near, np.inf))
+    depth = np.min(hits, axis=0)
+    # Millimetre quantisation like a real sensor.
+    return np.where(np.isfinite(depth), np.round(depth * 1000) / 1000, 0.0).astype(np.float32)
+
+
+def world_maps(obs, T_camera_to_world):
+    """An observation's vertex/normal maps moved to world, zero where invalid."""
+    R, t = T_camera_to_world[:3, :3], T_camera_to_world[:3, 3]
+    v = np.where(obs.valid[..., None], obs.vertex_map @ R.T + t, 0.0).astype(np.float32)
+    n = np.where(obs.valid[..., None], obs.normal_map @ R.T, 0.0).astype(np.float32)
+    return v, n
+
+
+MOTION = se3_exp(np.concatenate([np.deg2rad(3.0) * np.array([1.0, 2.0, 0.5]) / np.linalg.norm([1.0, 2.0, 0.5]),
+                                 [0.02, -0.015, 0.016]]))
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    first = preprocess(scene_depth(np.eye(4)), INTR, 0, 0)
+    second = preprocess(scene_depth(MOTION), INTR, 1, 1)
+    return first, second
+
+
+def test_synthetic_motion_recovered(synthetic):
+    first, second = synthetic
+    assert np.linalg.norm(MOTION[:3, 3]) > 0.029 and pose_error(np.eye(4), MOTION)[1] > 2.9
+    res = rigid_icp(first.vertex_map, first.normal_map, np.eye(4), second, np.eye(4))
+    dt, dr = pose_error(res.T_camera_to_world, MOTION)
+    print(f"synthetic: {dt * 1000:.3f} mm, {dr:.4f} deg, {res.iterations} iterations, rmse {res.rmse_m * 1000:.2f} mm")
+    assert dt < 0.002 and dr < 0.1
+    assert res.converged and res.inliers > 0.5 * second.num_valid
+    assert res.rmse_m < 0.002 and res.energy == pytest.approx(res.rmse_m ** 2)
+
+
+def test_world_frame_and_model_pose_are_respected(synthetic):
+    # The same problem expressed in another world frame: model maps G v, model camera G,
+    # start G; the answer must be G @ MOTION.
+    first, second = synthetic
+    G = se3_exp(np.array([0.3, -0.2, 0.5, 1.0, -2.0, 0.7]))
+    v, n = world_maps(first, G)
+    res = rigid_icp(v, n, G, second, G)
+    dt, dr = pose_error(res.T_camera_to_world, G @ MOTION)
+    assert dt < 0.002 and dr < 0.1
+
+
+def test_no_overlap_returns_the_initial_guess(synthetic):
+    first, second = synthetic
+    T_init = se3_exp(np.array([0, 0, 0, 0.01, 0, 0]))
+    empty = np.zeros_like(first.vertex_map)
+    res = rigid_icp(empty, empty, np.eye(4), second, T_init)
+    assert not res.converged and res.inliers == 0
+    np.testing.assert_array_equal(res.T_camera_to_world, T_init)
+    # A model seen from behind (every point behind the camera) also gives no pairs.
+    flipped = se3_exp(np.array([0, np.pi, 0, 0, 0, 0]))
+    res = rigid_icp(first.vertex_map, first.normal_map, flipped, second, np.eye(4))
+    assert not res.converged and res.inliers < RigidParams().min_correspondences
+
+
+def test_halved_intrinsics_match_subsampled_pixels():
+    points = np.array([[0.3, -0.2, 1.5], [-0.7, 0.4, 2.0]])
+    fine, coarse = INTR.project(points), halved(INTR).project(points)
+    np.testing.assert_allclose(coarse * 2, fine)
+    assert (halved(INTR).width, halved(INTR).height) == (160, 120)
+
+
+@pytest.fixture(scope="module")
+def office():
+    seq = open_sequence(shared_data("rigid-7scenes"), max_frames=31)
+    params = PreprocessParams(clip_far_m=4.0)
+    wanted = set(range(0, 31, 3)) | {10}
+    obs, poses = {}, {}
+    for frame in seq.files:
+        if frame.index in wanted:
+            obs[frame.index] = preprocess(seq.read_depth(frame), seq.intrinsics, frame.index, frame.index, params)
+            poses[frame.index] = seq.read_pose(frame)
+    return obs, poses
+
+
+def test_7scenes_pair_against_ground_truth(office):
+    obs, poses = office
+    truth = invert(poses[0]) @ poses[10]
+    before = pose_error(np.eye(4), truth)
+    times = []
+    for _ in range(3):
+        start = time.perf_counter()
+        res = rigid_icp(obs[0].vertex_map, obs[0].normal_map, np.eye(4), obs[10], np.eye(4))
+        times.append(time.perf_counter() - start)
+    dt, dr = pose_error(res.T_camera_to_world, truth)
+    print(f"7scenes 0->10: motion {before[0] * 100:.2f} cm {before[1]:.2f} deg; error {dt * 1000:.2f} mm "
+          f"{dr:.3f} deg; {res.iterations} iterations, rmse {res.rmse_m * 1000:.2f} mm, "
+          f"{res.inliers} inliers, {min(times) * 1000:.0f} ms per call")
+    assert dt < 0.015 and dr < 1.0
+    assert dt < 0.7 * before[0] and dr < 0.5 * before[1]
+    assert res.converged and res.rmse_m < 0.006
+    # A larger motion (about 5 cm), aligned directly.
+    truth = invert(poses[0]) @ poses[30]
+    res = rigid_icp(obs[0].vertex_map, obs[0].normal_map, np.eye(4), obs[30], np.eye(4))
+    dt, dr = pose_error(res.T_camera_to_world, truth)
+    print(f"7scenes 0->30: motion {np.linalg.norm(truth[:3, 3]) * 100:.2f} cm; error {dt * 1000:.2f} mm {dr:.3f} deg")
+    assert dt < 0.01 and dr < 0.5
+
+
+def test_7scenes_frame_to_frame_chain_drift(office):
+    obs, poses = office
+    T, prev = np.eye(4), obs[0]
+    for i in range(3, 31, 3):
+        v, n = world_maps(prev, T)
+        res = rigid_icp(v, n, T, obs[i], T)
+        assert res.inliers > 100_000
+        T, prev = res.T_camera_to_world, obs[i]
+    truth = invert(poses[0]) @ poses[30]
+    dt, dr = pose_error(T, truth)
+    print(f"7scenes chain 0..30 step 3: motion {np.linalg.norm(truth[:3, 3]) * 100:.2f} cm, "
+          f"drift {dt * 100:.2f} cm {dr:.3f} deg")
+    assert dt < 0.03 and dr < 1.2
