@@ -235,6 +235,26 @@ def test_released_nodes_settle_after_staying_put():
     np.testing.assert_allclose(state.rest[m // 2:], field.transforms[m // 2:])
 
 
+def test_released_nodes_back_within_their_release_distance_are_anchored_at_rest():
+    """A false release (the node ends the frame within release_sigmas of rest) is undone at once,
+    at rest; a node that ends it farther stays released, whatever it does after."""
+    field = sheet_field()
+    m = field.num_nodes
+    params = AnchorParams()                       # release_sigmas 2
+    depth = np.ones(m)
+    sigma = axial_noise_sigma_m(1.0)
+    state = NodeAnchors.at_rest(field).release(np.ones(m, bool))
+    offset = np.zeros((m, 6))
+    near = np.arange(m) < m // 2
+    offset[near, 5] = 1.5 * sigma                 # inside the release distance
+    offset[~near, 5] = 2.5 * sigma                # outside it
+    current = field.with_transforms(se3_exp(offset) @ field.transforms)
+    state = state.settle(current, depth, params)
+    assert not state.released[near].any() and state.released[~near].all()
+    np.testing.assert_allclose(state.rest, field.transforms)     # at rest, not where they are
+    assert (state.stillness[near] > 0).all() and (state.stillness[~near] == 0).all()
+
+
 def test_anchors_follow_extension_and_restart_on_a_new_field():
     field = sheet_field()
     m = field.num_nodes
