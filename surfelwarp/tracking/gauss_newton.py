@@ -14,7 +14,7 @@ max_iterations. With rest anchors the common motion G of the anchored nodes is o
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field as dc_field
+from dataclasses import dataclass, field as dc_field, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -214,9 +214,9 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
     clip, free space for the free-space term (free_space.py).
     """
     knn = np.asarray(knn, np.int64)
-    solve = Solve(Problem(field, _components(np.reshape(ref_points, (-1, 3))), _components(np.reshape(ref_normals, (-1, 3))),
-                           knn, np.asarray(weights, np.float64), depth_vertex_map, depth_normal_map, depth_valid,
-                           intrinsics, T_camera_to_world, params, anchor, depth_beyond))
+    points, normals = (_components(np.reshape(a, (-1, 3))) for a in (ref_points, ref_normals))
+    solve = Solve(Problem(field, points, normals, knn, np.asarray(weights, np.float64), depth_vertex_map,
+                          depth_normal_map, depth_valid, intrinsics, T_camera_to_world, params, anchor, depth_beyond))
     free = np.ones(field.num_nodes, bool)
     if params.free_rings is not None:
         in_view = np.zeros(field.num_nodes, bool)
@@ -235,10 +235,10 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
         stepped = apply_update(current.field, step.xi)
         longest = _motion(current.field, stepped, step.xi)
         if longest < params.stop_motion_m:
-            current = solve.at(stepped, border_step=step.zeta)
+            candidate = solve.at(stepped, border_step=step.zeta)
             for term in solve.terms:
-                term.accept(current)
-            converged = True
+                term.accept(candidate)
+            current, converged = replace(candidate, border_step=None), True   # the step is taken
             break
         # The candidate's energy is over the iteration's pairs. A step that raises it is halved
         # (twice at most): the free-space term is far from linear over a long step.
