@@ -121,9 +121,15 @@ def build_terms(names, problem: Problem) -> list[Term]:
     return terms
 
 
+_LOADED: list[bool] = []
+
+
 def _load_all() -> None:
-    for info in pkgutil.iter_modules(__path__):
-        importlib.import_module(f"{__name__}.{info.name}")
+    """Import every module of this folder once: their factories register themselves."""
+    if not _LOADED:
+        for info in pkgutil.iter_modules(__path__):
+            importlib.import_module(f"{__name__}.{info.name}")
+        _LOADED.append(True)
 
 
 def robust(r: np.ndarray, kind: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
