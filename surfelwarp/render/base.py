@@ -41,6 +41,18 @@ def read_attachment(fbo: moderngl.Framebuffer, attachment: int, components: int,
     return out
 
 
+def camera_points(intrinsics, positions, normals) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) float32 camera-frame points and normals to draw at `intrinsics`; ValueError for an
+    image without a size or arrays of different lengths."""
+    if intrinsics.width <= 0 or intrinsics.height <= 0:
+        raise ValueError("intrinsics need a width and height")
+    positions = np.asarray(positions, np.float32).reshape(-1, 3)
+    normals = np.asarray(normals, np.float32).reshape(-1, 3)
+    if len(normals) != len(positions):
+        raise ValueError("positions and normals differ in length")
+    return positions, normals
+
+
 class Renderer:
     """A program drawing from named vertex buffers into framebuffers of `attachments` (a list of
     (components, dtype) renderbuffers) and a depth buffer. Subclasses set the program, the

@@ -14,7 +14,7 @@ import moderngl
 import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.render.base import FAR_M, NEAR_M, Renderer
+from surfelwarp.render.base import FAR_M, NEAR_M, Renderer, camera_points
 from surfelwarp.render.shaders import load_program
 
 
@@ -77,12 +77,7 @@ def render_index_map(positions: np.ndarray, normals: np.ndarray, intrinsics: Int
     if int(supersample) != supersample or supersample < 1:
         raise ValueError(f"supersample must be a positive integer, not {supersample}")
     intr = intrinsics.supersampled(int(supersample))
-    if intr.width <= 0 or intr.height <= 0:
-        raise ValueError("intrinsics need a width and height")
-    positions = np.asarray(positions, np.float32).reshape(-1, 3)
-    normals = np.asarray(normals, np.float32).reshape(-1, 3)
-    if len(normals) != len(positions):
-        raise ValueError("positions and normals differ in length")
+    positions, normals = camera_points(intr, positions, normals)
     conf = (np.zeros(len(positions), np.float32) if confidence is None
             else np.asarray(confidence, np.float32).reshape(-1))
     if len(conf) != len(positions):

@@ -11,7 +11,7 @@ import moderngl
 import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.render.base import FAR_M, NEAR_M, Renderer, read_attachment
+from surfelwarp.render.base import FAR_M, NEAR_M, Renderer, camera_points, read_attachment
 from surfelwarp.render.shaders import load_program
 from surfelwarp.render.solver_maps import SolverMaps
 
@@ -48,12 +48,7 @@ def render_mesh_maps(vertices_cam: np.ndarray, normals_cam: np.ndarray, faces: n
     normal, renormalised (as given: no flipping toward the camera). Triangles are clipped at
     near_m and far_m; triangles with a non-finite corner are dropped.
     """
-    if intrinsics.width <= 0 or intrinsics.height <= 0:
-        raise ValueError("intrinsics need a width and height")
-    vertices = np.asarray(vertices_cam, np.float32).reshape(-1, 3)
-    normals = np.asarray(normals_cam, np.float32).reshape(-1, 3)
-    if len(normals) != len(vertices):
-        raise ValueError("vertices and normals differ in length")
+    vertices, normals = camera_points(intrinsics, vertices_cam, normals_cam)
     faces = np.asarray(faces).reshape(-1, 3)
     if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise ValueError("faces index outside the vertex array")

@@ -12,7 +12,7 @@ import moderngl
 import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.render.base import FAR_M, NEAR_M, Renderer, read_attachment
+from surfelwarp.render.base import FAR_M, NEAR_M, Renderer, camera_points, read_attachment
 from surfelwarp.render.shaders import load_program
 
 MARGIN_PX = 32        # disks whose sprite centre falls this far off the image still draw
@@ -84,14 +84,11 @@ def render_solver_maps(positions: np.ndarray, normals: np.ndarray, radii: np.nda
     Disks reaching outside (near_m, far_m) in depth are dropped; a disk whose projection is wider
     than the driver's largest point size (255 px on llvmpipe) is cut to that square.
     """
-    if intrinsics.width <= 0 or intrinsics.height <= 0:
-        raise ValueError("intrinsics need a width and height")
-    positions = np.asarray(positions, np.float32).reshape(-1, 3)
-    normals = np.asarray(normals, np.float32).reshape(-1, 3)
+    positions, normals = camera_points(intrinsics, positions, normals)
     radii = np.asarray(radii, np.float32).reshape(-1)
     n = len(positions)
-    if len(normals) != n or len(radii) != n:
-        raise ValueError("positions, normals and radii differ in length")
+    if len(radii) != n:
+        raise ValueError("positions and radii differ in length")
     elements = np.arange(n, dtype=np.uint32) if indices is None else _elements(indices, n)
     fill = np.zeros(0, np.uint32) if fill_indices is None else _elements(fill_indices, n)
     index, vertex, normal = _SplatRenderer.current().render(positions, normals, radii, elements, fill, intrinsics,

@@ -87,7 +87,6 @@ class NonRigidParams:
 class NonRigidResult:
     iterations: int                # Gauss-Newton steps solved
     energy: float                  # total E at the returned field (freshly associated)
-    data_energy: float             # sum of rho(point-to-plane residual), m^2
     reg_energy: float              # sum of squared regulariser residuals, m^2 (before lambda)
     correspondences: int           # at the returned field
     energies: tuple[float, ...]    # total E at the start of every iteration, then the final one
@@ -95,11 +94,20 @@ class NonRigidResult:
                                    # iteration limit, an energy rise or too few pairs)
     node_support: np.ndarray | None = None   # (M,) skinning weight of the final pairs per node
     released: np.ndarray | None = None       # (M,) anchored nodes this solve set free (anchors.py)
-    silhouette_energy: float = 0.0           # weight * sum of Huber(r) of the free-space term, m^2
     silhouette_points: int = 0               # model points the camera saw through, at the result
     alignment: Alignment | None = None       # model and depth explaining each other, at the result
     lu_fallbacks: int = 0                    # steps PCG did not converge on, solved by sparse LU
     term_energies: dict[str, float] = dc_field(default_factory=dict)   # each term's, at the result
+
+    @property
+    def data_energy(self) -> float:
+        """Sum of rho(point-to-plane residual), m^2."""
+        return self.term_energies.get("depth", 0.0)
+
+    @property
+    def silhouette_energy(self) -> float:
+        """Weight * sum of Huber(r) of the free-space term, m^2."""
+        return self.term_energies.get("free_space", 0.0)
 
     @property
     def data_rmse_m(self) -> float:
@@ -268,7 +276,10 @@ def _result(solve: Solve, current: Iterate, free: np.ndarray, steps: int, energi
     for term in solve.terms:
         field = term.finish(field, free)
     final = current if field is current.field else solve.at(field)
-    by_term = {term.name: term.energy(final) for term in solve.terms}
+    named = {term.name: term for term in solve.terms}
+    anchors, free_space = named.get("rest_anchors"), named.get("free_space")
+    seen = free_space.seen_through(final) if free_space else None      # its energy and points at once
+    by_term = {term.name: seen[0] if term is free_space else term.energy(final) for term in solve.terms}
     total = sum(by_term.values())
     energies.append(total)
     pb, pairs = solve.problem, final.pairs
@@ -276,10 +287,9 @@ def _result(solve: Solve, current: Iterate, free: np.ndarray, steps: int, energi
     vertex = np.asarray(pb.depth_vertex_map)
     alignment = measure(final.live.T, final.live_normals.T, pb.T_camera_to_world, vertex[..., 2], vertex,
                         pb.depth_valid, pb.intrinsics)
-    named = {term.name: term for term in solve.terms}
-    anchors, free_space = named.get("rest_anchors"), named.get("free_space")
     return field, NonRigidResult(
-        steps, total, by_term.get("depth", 0.0), float(np.sum(reg_residuals(field) ** 2)), len(pairs.index),
-        tuple(energies), converged, support, anchors.released if anchors else None, by_term.get("free_space", 0.0),
-        len(free_space.seen_through(final)[1]) if free_space else 0, alignment,
-        fallbacks + (anchors.lu_fallbacks if anchors else 0), by_term)
+        iterations=steps, energy=total, reg_energy=float(np.sum(reg_residuals(field) ** 2)),
+        correspondences=len(pairs.index), energies=tuple(energies), converged=converged, node_support=support,
+        released=anchors.released if anchors else None, silhouette_points=len(seen[1]) if seen else 0,
+        alignment=alignment, lu_fallbacks=fallbacks + (anchors.lu_fallbacks if anchors else 0),
+        term_energies=by_term)

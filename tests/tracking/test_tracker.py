@@ -111,7 +111,8 @@ def test_rigid_icp_without_pairs_keeps_the_pose_and_says_so():
     tracker = Tracker(intr)
     T0 = se3_exp(np.array([0.1, 0.0, 0.05, 0.02, 0.0, -0.01]))
     tracker.T_camera_to_world = T0
-    unsolved = NonRigidResult(0, 0.0, 0.0, 0.0, 0, (), False)
+    unsolved = NonRigidResult(iterations=0, energy=0.0, reg_energy=0.0, correspondences=0, energies=(),
+                              converged=False)
     empty = np.zeros((120, 160, 3), np.float32)
     result = tracker.rigid(empty, empty, obs)
     assert np.array_equal(tracker.T_camera_to_world, T0)
