@@ -25,6 +25,7 @@ seen edge-on, had no depth; with them 0.23 cm, as without the term.)
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import cv2
@@ -46,6 +47,11 @@ class SilhouetteParams:
     occluder_px: int = 24           # no depth this close to depth in front of a point: not free
 
 
+# The chamfer distance of cv2's 5x5 mask is at least this fraction of the Euclidean one.
+_CHAMFER_MIN = 0.95
+_WINDOW_PAD_PX = 32    # the distance transforms' windows reach this far past their points
+
+
 class FreeSpace:
     """One observation's free space as seen from its camera (camera-frame depth, world pose)."""
 
@@ -54,9 +60,7 @@ class FreeSpace:
         """depth_m 0 where nothing was measured; `beyond`: pixels measured past the far clip
         (their depth dropped), free space in front of them, not holes."""
         self.params, self.intrinsics = params, intrinsics
-        T = np.asarray(T_camera_to_world, np.float64)
-        self.R_wc, self.t_wc = T[:3, :3].T, -T[:3, :3].T @ T[:3, 3]
-        self.centre = T[:3, 3]
+        self._pose(T_camera_to_world)
         self.depth = np.asarray(depth_m, np.float32)
         if beyond is not None:
             self.depth = np.where(beyond, np.float32(np.inf), self.depth)
@@ -76,23 +80,66 @@ class FreeSpace:
         self._reach = np.zeros((h, w), np.float32)
         self._reach[:-1, :-1] = np.where(self.judged[:-1, :-1], block, 0)
         self._reach = self._reach.reshape(-1)
-        self._layers: dict[int, np.ndarray] = {}
+        self._layers: dict[int, tuple] = {}   # layer -> (r0, r1, c0, c1, its distance transform there)
 
-    def _distance(self, layer: int) -> np.ndarray:
-        """(H, W) float32 pixel distance to the nearest pixel consistent with a point at the
-        far edge of depth layer `layer` (0 where consistent)."""
-        if layer not in self._layers:
-            p = self.params
-            far = (layer + 1) * p.layer_m + p.depth_margin_m
-            free = self.empty
-            nearer = (self.depth > 0) & (self.depth < layer * p.layer_m - p.depth_margin_m)
-            if nearer.any():
-                # Beside a surface in front, no depth may be that surface seen edge-on.
-                gap = cv2.distanceTransform((~nearer).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
-                free = free & (gap > p.occluder_px)
-            through = free | (self.depth > far)
-            self._layers[layer] = cv2.distanceTransform(through.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
-        return self._layers[layer]
+    def _pose(self, T_camera_to_world: np.ndarray) -> None:
+        T = np.asarray(T_camera_to_world, np.float64)
+        self.R_wc, self.t_wc = T[:3, :3].T, -T[:3, :3].T @ T[:3, 3]
+        self.centre = T[:3, 3]
+
+    def moved_to(self, T_camera_to_world: np.ndarray) -> FreeSpace:
+        """The same observation's free space with the camera at another pose: the depth layers'
+        distance transforms, the costly part, are shared (one set per observation a frame)."""
+        moved = copy.copy(self)
+        moved._pose(T_camera_to_world)
+        return moved
+
+    def _transform(self, layer: int, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """Pixel distance to the nearest pixel consistent with a point at the far edge of depth
+        layer `layer` (0 where consistent), over rows r0:r1 and cols c0:c1 of the image, taking
+        only the pixels of that window (plus occluder_px around it) into account."""
+        p = self.params
+        h, w = self.depth.shape
+        e = int(np.ceil(p.occluder_px / _CHAMFER_MIN)) + 2
+        R0, R1, C0, C1 = max(r0 - e, 0), min(r1 + e, h), max(c0 - e, 0), min(c1 + e, w)
+        depth, free = self.depth[R0:R1, C0:C1], self.empty[R0:R1, C0:C1]
+        nearer = (depth > 0) & (depth < layer * p.layer_m - p.depth_margin_m)
+        if nearer.any():
+            # Beside a surface in front, no depth may be that surface seen edge-on.
+            gap = cv2.distanceTransform((~nearer).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+            free = free & (gap > p.occluder_px)
+        through = free | (depth > (layer + 1) * p.layer_m + p.depth_margin_m)
+        window = through[r0 - R0:r1 - R0, c0 - C0:c1 - C0]
+        return cv2.distanceTransform(window.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+
+    def _distance(self, layer: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """(n, 4) distances of layer `layer` at the pixels (rows, cols), (rows, cols + 1),
+        (rows + 1, cols), (rows + 1, cols + 1).
+
+        The transform runs on a window around the points (a seen-through region is usually
+        small next to the image) and is kept for the observation's later calls. It is exact
+        where a distance is below the window's border distance (the chamfer metric's shortest
+        paths stay in their bounding box, and any pixel outside is at least that far): a
+        point where that fails gets the whole image's transform."""
+        h, w = self.depth.shape
+        box = (max(int(rows.min()) - _WINDOW_PAD_PX, 0), min(int(rows.max()) + 2 + _WINDOW_PAD_PX, h),
+               max(int(cols.min()) - _WINDOW_PAD_PX, 0), min(int(cols.max()) + 2 + _WINDOW_PAD_PX, w))
+        cached = self._layers.get(layer)
+        if cached is None or not (cached[0] <= rows.min() and rows.max() + 2 <= cached[1]
+                                  and cached[2] <= cols.min() and cols.max() + 2 <= cached[3]):
+            if cached is not None:
+                box = (min(box[0], cached[0]), max(box[1], cached[1]), min(box[2], cached[2]), max(box[3], cached[3]))
+            cached = self._layers[layer] = (*box, self._transform(layer, *box))
+        r0, r1, c0, c1, dist = cached
+        a, c = rows - r0, cols - c0
+        D = np.stack([dist[a, c], dist[a, c + 1], dist[a + 1, c], dist[a + 1, c + 1]], -1)
+        inf = np.inf
+        border = np.minimum(np.minimum(rows - r0 + 1 if r0 > 0 else inf, r1 - rows - 1 if r1 < h else inf),
+                            np.minimum(cols - c0 + 1 if c0 > 0 else inf, c1 - cols - 1 if c1 < w else inf))
+        if np.any(D.max(axis=1) > _CHAMFER_MIN * border):
+            self._layers[layer] = (0, h, 0, w, self._transform(layer, 0, h, 0, w))
+            return self._distance(layer, rows, cols)
+        return D
 
     def facing(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """(N,) bool: world points and normals (3, N) seen at most acos(min_view_cos) from
@@ -149,10 +196,8 @@ class FreeSpace:
         layer = np.floor(z[sel] / p.layer_m).astype(np.int64)
         D = np.zeros((len(sel), 4))
         for k in np.unique(layer):
-            dist = self._distance(int(k))
             m = layer == k
-            a, c = ui[m], vi[m]
-            D[m] = np.stack([dist[c, a], dist[c, a + 1], dist[c + 1, a], dist[c + 1, a + 1]], -1)
+            D[m] = self._distance(int(k), vi[m], ui[m])
         fu, fv = u[sel] - ui, v[sel] - vi
         d = (1 - fu) * (1 - fv) * D[:, 0] + fu * (1 - fv) * D[:, 1] + (1 - fu) * fv * D[:, 2] + fu * fv * D[:, 3]
         out = d > p.margin_px

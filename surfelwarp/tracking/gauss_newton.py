@@ -27,7 +27,7 @@ from surfelwarp.tracking.anchors import AnchorTerm
 from surfelwarp.tracking.assembly import CHUNK, BlockPattern, NormalEquations, dense_point_blocks
 from surfelwarp.tracking.association import DepthTargets, associate_components
 from surfelwarp.tracking.blend_jacobian import twist_dual_quaternions
-from surfelwarp.tracking.free_space import SilhouetteParams
+from surfelwarp.tracking.free_space import FreeSpace, SilhouetteParams
 from surfelwarp.tracking.linear import LINEAR_SOLVERS, solve_system
 from surfelwarp.tracking.terms import ROBUST, Iterate, Problem, build_terms, known_terms
 from surfelwarp.tracking.terms.regulariser import reg_residuals, regulariser_blocks
@@ -210,7 +210,8 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
                    depth_valid: np.ndarray, intrinsics: Intrinsics, T_camera_to_world: np.ndarray,
                    params: NonRigidParams = NonRigidParams(),
                    anchor: AnchorTerm | None = None,
-                   depth_beyond: np.ndarray | None = None) -> tuple[WarpField, NonRigidResult]:
+                   depth_beyond: np.ndarray | None = None,
+                   free_space: FreeSpace | None = None) -> tuple[WarpField, NonRigidResult]:
     """Gauss-Newton on Eq. 8 and the other terms of params.terms, starting from `field`; returns
     the improved field and a summary.
 
@@ -219,12 +220,14 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
     With an anchor term (anchors.py), its nodes are held at rest up to one rigid motion G they
     share, solved with them, except those the first iteration releases; nodes held out of the
     solve follow G at the end. depth_beyond (H, W), if given, marks pixels measured past the far
-    clip, free space for the free-space term (free_space.py).
+    clip, free space for the free-space term (free_space.py); `free_space`, if given, is that
+    term's view of this observation (at any pose), reused instead of built again.
     """
     knn = np.asarray(knn, np.int64)
     points, normals = (_components(np.reshape(a, (-1, 3))) for a in (ref_points, ref_normals))
     solve = Solve(Problem(field, points, normals, knn, np.asarray(weights, np.float64), depth_vertex_map,
-                          depth_normal_map, depth_valid, intrinsics, T_camera_to_world, params, anchor, depth_beyond))
+                          depth_normal_map, depth_valid, intrinsics, T_camera_to_world, params, anchor, depth_beyond,
+                          free_space))
     free = np.ones(field.num_nodes, bool)
     if params.free_rings is not None:
         in_view = np.zeros(field.num_nodes, bool)

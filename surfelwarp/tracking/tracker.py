@@ -18,6 +18,7 @@ from surfelwarp.geometry.se3 import fit_rigid, invert
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.anchors import AnchorParams, NodeAnchors, follow_motion, node_depth_m
 from surfelwarp.tracking.degeneracy import HeldDirections
+from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.gauss_newton import NonRigidParams, NonRigidResult, solve_nonrigid
 from surfelwarp.tracking.rigid_icp import RigidParams, RigidResult, rigid_icp
 
@@ -120,6 +121,15 @@ class Tracker:
         self._held: HeldDirections | None = None       # directions ICP did not move the camera along
         self._camera_moves = params.camera == "moving"  # this frame: still surface to tell its motion
         self._lu_fallbacks = 0                          # this frame's, over every solve
+        self._free_space: tuple[CameraObservation, FreeSpace] | None = None
+
+    def free_space(self, obs: CameraObservation, T_camera_to_world: np.ndarray) -> FreeSpace:
+        """The observation's free space seen from T_camera_to_world, built once per observation
+        for the frame's solves and the model's carving."""
+        if self._free_space is None or self._free_space[0] is not obs:
+            self._free_space = obs, FreeSpace(obs.depth_m, self.intrinsics, T_camera_to_world,
+                                              self.params.nonrigid.silhouette, obs.beyond)
+        return self._free_space[1].moved_to(T_camera_to_world)
 
     def stillness(self, knn: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """(N,) how still each point is (0-1), given its nodes and weights (N, k) in the last
@@ -183,7 +193,7 @@ class Tracker:
 
         def solve(start: WarpField, T_camera_to_world: np.ndarray) -> tuple[WarpField, NonRigidResult]:
             solved, result = solve_nonrigid(start, *model, *depth, T_camera_to_world, self.params.nonrigid, anchor,
-                                            obs.beyond)
+                                            obs.beyond, self.free_space(obs, T_camera_to_world))
             self._lu_fallbacks += result.lu_fallbacks
             return solved, result
 

@@ -156,3 +156,35 @@ def test_the_solve_pulls_a_sheet_back_under_its_silhouette():
         else:
             assert abs(slide) < 0.004, slide
             assert res.alignment.unsupported_fraction < 0.05
+
+
+def test_windowed_distance_transforms_equal_the_whole_images():
+    """Each layer's transform runs on a window around its points; the residuals and gradients
+    must be those of transforms over the whole image (a scene of steps, holes and a far wall)."""
+    rng = np.random.default_rng(5)
+    depth = np.full((INTR.height, INTR.width), 2.5, np.float32)
+    for _ in range(12):
+        r, c = rng.integers(0, INTR.height - 40), rng.integers(0, INTR.width - 40)
+        depth[r:r + rng.integers(10, 40), c:c + rng.integers(10, 40)] = rng.uniform(0.6, 2.0)
+    depth[rng.random(depth.shape) < 0.02] = 0
+    depth[100:160, 40:120] = 0
+    depth[:, 190:] = 0      # a wide empty region: its points are farther from the surface than a window reaches
+    # Clusters of points, each at one depth (so one layer): a seen-through region is local.
+    clusters = []
+    for _ in range(80):
+        cu, cv, z = rng.uniform(15, INTR.width - 16), rng.uniform(15, INTR.height - 16), rng.uniform(0.5, 2.6)
+        clusters.append(at_pixel(cu + rng.uniform(-15, 15, 40), cv + rng.uniform(-15, 15, 40), z))
+    clusters.append(at_pixel(rng.uniform(270, 290, 40), rng.uniform(110, 130, 40), 1.01))  # far from any surface
+    points = np.concatenate(clusters, axis=1)
+    windowed = FreeSpace(depth, INTR, np.eye(4))
+    whole = FreeSpace(depth, INTR, np.eye(4))
+    h, w = depth.shape
+    for layer in range(200):
+        whole._layers[layer] = (0, h, 0, w, whole._transform(layer, 0, h, 0, w))
+    r1, g1 = windowed.residuals(points)
+    r2, g2 = whole.residuals(points)
+    assert (r2 > 0).sum() > 300 and r2.max() > 0.1
+    # Equal but for float32 rounding of chamfer sums taken along other paths of the same length.
+    np.testing.assert_allclose(r1, r2, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(g1, g2, rtol=1e-6, atol=1e-5)
+    assert any(box[:4] != (0, h, 0, w) for box in windowed._layers.values())   # windows were used

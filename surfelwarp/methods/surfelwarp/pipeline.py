@@ -32,7 +32,6 @@ from surfelwarp.preprocess import CameraObservation
 from surfelwarp.render.index_map import render_index_map
 from surfelwarp.render.solver_maps import maps_to_world, render_solver_maps
 from surfelwarp.timing import StageTimer
-from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.tracker import SurfelSet, Tracker
 
 __all__ = ["SurfelWarpMethod", "SurfelWarpParams", "plot_counts"]
@@ -155,11 +154,10 @@ class SurfelWarpMethod:
 
         # VI-D: drop long-unstable surfels and near duplicates on the index map, and the live
         # surfels the camera saw through (free space), then append.
-        sil = p.tracking.nonrigid.silhouette
         carved = np.zeros(len(m), bool)
         if np.isfinite(p.fusion.carve_beyond_m):
-            carved = FreeSpace(obs.depth_m, self.intrinsics, T, sil, obs.beyond).seen_through(
-                m.live_position, m.live_normal, p.fusion.carve_beyond_m)
+            carved = self.tracker.free_space(obs, T).seen_through(m.live_position, m.live_normal,
+                                                                  p.fusion.carve_beyond_m)
         unstable_or_redundant = removal_mask(m, maps, now, p.fusion, T) | carved
         m = remove(m, unstable_or_redundant).concatenate(added.surfels(now, self._next_id))
         self._next_id += len(added)

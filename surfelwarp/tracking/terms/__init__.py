@@ -25,6 +25,7 @@ from surfelwarp.deform.warp_field import WarpField
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.tracking.assembly import NormalEquations
 from surfelwarp.tracking.association import DepthPairs
+from surfelwarp.tracking.free_space import FreeSpace
 
 if TYPE_CHECKING:     # the solve that builds the terms imports this module
     from surfelwarp.tracking.anchors import AnchorTerm
@@ -50,6 +51,7 @@ class Problem:
     params: NonRigidParams
     anchor: AnchorTerm | None = None
     depth_beyond: np.ndarray | None = None
+    free_space: FreeSpace | None = None   # the observation's, at any pose (built if None)
 
 
 @dataclass(frozen=True, eq=False)

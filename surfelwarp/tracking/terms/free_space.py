@@ -44,6 +44,9 @@ def build(problem: Problem) -> FreeSpaceTerm | None:
     params = problem.params.silhouette
     if params.weight <= 0:
         return None
-    free_space = FreeSpace(np.asarray(problem.depth_vertex_map)[..., 2], problem.intrinsics, problem.T_camera_to_world,
-                           params, problem.depth_beyond)
+    if problem.free_space is not None and problem.free_space.params == params:
+        free_space = problem.free_space.moved_to(problem.T_camera_to_world)
+    else:
+        free_space = FreeSpace(np.asarray(problem.depth_vertex_map)[..., 2], problem.intrinsics,
+                               problem.T_camera_to_world, params, problem.depth_beyond)
     return FreeSpaceTerm(free_space, params, problem.ref_points)
