@@ -12,8 +12,6 @@ flat in float v_radius;
 flat in int v_index;
 
 layout(location = 0) out int o_index;    // index + 1, so the cleared value 0 means empty
-layout(location = 1) out vec4 o_vertex;
-layout(location = 2) out vec4 o_normal;
 
 void main() {
     vec2 uv = gl_FragCoord.xy - 0.5 - u_margin;
@@ -32,6 +30,4 @@ void main() {
     float z = clamp(t, p.z - ez, p.z + ez);
     gl_FragDepth = u_depth_layer.x + u_depth_layer.y * (z - u_near_far.x) / (u_near_far.y - u_near_far.x);
     o_index = v_index + 1;
-    o_vertex = vec4(p, 1.0);
-    o_normal = vec4(v_normal, 0.0);
 }

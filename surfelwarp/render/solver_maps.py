@@ -2,7 +2,8 @@
 
 Each pixel holds the index, camera-frame position and normal of the surfel whose disk the pixel's
 ray meets first; the depth test uses the ray/disk intersection depth, so overlapping splats
-resolve per pixel.
+resolve per pixel. Only the index is drawn: position and normal are the surfel's own, gathered
+from the arrays that were drawn (on llvmpipe two RGBA32F attachments cost ~15 % of the draw).
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import moderngl
 import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.render.base import FAR_M, NEAR_M, Renderer, camera_points, read_attachment
+from surfelwarp.render.base import FAR_M, NEAR_M, Renderer, camera_points
 from surfelwarp.render.shaders import load_program
 
 MARGIN_PX = 32        # disks whose sprite centre falls this far off the image still draw
@@ -29,7 +30,7 @@ class SolverMaps:
 
 
 class _SplatRenderer(Renderer):
-    attachments = [(1, "i4"), (4, "f4"), (4, "f4")]
+    attachments = [(1, "i4")]
     attributes = [("position", "3f", "in_position"), ("normal", "3f", "in_normal"), ("radius", "1f", "in_radius")]
     buffers = ("position", "normal", "radius", "element")
 
@@ -58,10 +59,7 @@ class _SplatRenderer(Renderer):
             if count:
                 prog["u_depth_layer"].value = layer
                 self.vertex_array().render(moderngl.POINTS, vertices=count, first=first)
-        origin = (MARGIN_PX, MARGIN_PX)
-        return (self.read_index(fbo, height, width, origin),
-                read_attachment(fbo, 1, 3, "f4", height, width, origin),
-                read_attachment(fbo, 2, 3, "f4", height, width, origin))
+        return self.read_index(fbo, height, width, (MARGIN_PX, MARGIN_PX))
 
 
 def _elements(indices: np.ndarray, n: int) -> np.ndarray:
@@ -91,17 +89,20 @@ def render_solver_maps(positions: np.ndarray, normals: np.ndarray, radii: np.nda
         raise ValueError("positions and radii differ in length")
     elements = np.arange(n, dtype=np.uint32) if indices is None else _elements(indices, n)
     fill = np.zeros(0, np.uint32) if fill_indices is None else _elements(fill_indices, n)
-    index, vertex, normal = _SplatRenderer.current().render(positions, normals, radii, elements, fill, intrinsics,
-                                                     near_m, far_m)
+    index = _SplatRenderer.current().render(positions, normals, radii, elements, fill, intrinsics, near_m, far_m)
+    hit = index >= 0
+    drawn = index[hit]
+    vertex = np.zeros(index.shape + (3,), np.float32)
+    normal = np.zeros(index.shape + (3,), np.float32)
+    vertex[hit], normal[hit] = positions[drawn], normals[drawn]
     return SolverMaps(index=index, vertex=vertex, normal=normal, intrinsics=intrinsics)
 
 
 def maps_to_world(maps: SolverMaps, T_camera_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Solver maps in world coordinates, zero where no surfel was drawn (as rigid ICP expects)."""
-    empty = maps.index < 0
+    hit = maps.index >= 0
     R = T_camera_to_world[:3, :3].astype(np.float32)
-    vertex = maps.vertex @ R.T + T_camera_to_world[:3, 3].astype(np.float32)
-    normal = maps.normal @ R.T
-    vertex[empty] = 0
-    normal[empty] = 0
+    vertex, normal = np.zeros_like(maps.vertex), np.zeros_like(maps.normal)
+    vertex[hit] = maps.vertex[hit] @ R.T + T_camera_to_world[:3, 3].astype(np.float32)
+    normal[hit] = maps.normal[hit] @ R.T
     return vertex, normal
