@@ -65,25 +65,40 @@ def bilateral_filter(depth_m: np.ndarray, params: PreprocessParams) -> np.ndarra
 
     Written out rather than cv2.bilateralFilter because OpenCV lets the zeros of missing
     pixels leak into their neighbours (up to ~1 mm), which bends normals at every hole.
+    The weight of pixel q at p equals that of p at q, so each pair's exponential is computed
+    once, for the offsets of one half-plane, and added to both ends.
     """
     radius = params.bilateral_diameter_px // 2
+    d = np.asarray(depth_m, np.float32)
     if radius < 1:
-        return depth_m.astype(np.float32)
-    h, w = depth_m.shape
-    padded = np.pad(depth_m, radius)
-    valid = depth_m > 0
-    total = np.zeros((h, w), np.float32)
-    weight_sum = np.zeros((h, w), np.float32)
+        return d.copy()
+    h, w = d.shape
+    valid = (d > 0).astype(np.float32)
+    total = d * valid
+    weight_sum = valid.copy()
     inv_space = -0.5 / params.bilateral_sigma_space_px ** 2
-    inv_depth = -0.5 / params.bilateral_sigma_depth_m ** 2
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            shifted = padded[radius + dy:radius + dy + h, radius + dx:radius + dx + w]
-            weight = np.exp(inv_space * (dx * dx + dy * dy) + inv_depth * (shifted - depth_m) ** 2)
-            weight *= shifted > 0
-            total += weight * shifted
-            weight_sum += weight
-    return np.where(valid, total / np.maximum(weight_sum, 1e-12), 0.0).astype(np.float32)
+    inv_depth = np.float32(-0.5 / params.bilateral_sigma_depth_m ** 2)
+    half = [(dy, dx) for dy in range(radius + 1) for dx in range(-radius, radius + 1) if dy > 0 or dx > 0]
+    for dy, dx in half:
+        # p over rows/cols where q = p + (dy, dx) is inside the image.
+        p_rows, q_rows = slice(0, h - dy), slice(dy, h)
+        p_cols, q_cols = slice(max(0, -dx), min(w, w - dx)), slice(max(0, dx), min(w, w + dx))
+        a, b = d[p_rows, p_cols], d[q_rows, q_cols]
+        e = b - a
+        np.square(e, out=e)
+        e *= inv_depth
+        e += np.float32(inv_space * (dx * dx + dy * dy))
+        np.exp(e, out=e)
+        e *= valid[p_rows, p_cols]
+        e *= valid[q_rows, q_cols]
+        weight_sum[p_rows, p_cols] += e
+        weight_sum[q_rows, q_cols] += e
+        total[q_rows, q_cols] += e * a
+        e *= b
+        total[p_rows, p_cols] += e
+    np.divide(total, np.maximum(weight_sum, np.float32(1e-12)), out=total)
+    total *= valid
+    return total
 
 
 def normal_map(vertex_map: np.ndarray, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -92,19 +107,23 @@ def normal_map(vertex_map: np.ndarray, depth_m: np.ndarray) -> tuple[np.ndarray,
     valid = np.zeros((h, w), dtype=bool)
     d = depth_m > 0
     valid[1:-1, 1:-1] = d[1:-1, 1:-1] & d[1:-1, 2:] & d[1:-1, :-2] & d[2:, 1:-1] & d[:-2, 1:-1]
-    normals = np.zeros_like(vertex_map)
-    du = vertex_map[1:-1, 2:] - vertex_map[1:-1, :-2]
-    dv = vertex_map[2:, 1:-1] - vertex_map[:-2, 1:-1]
-    n = np.cross(du, dv)
-    length = np.linalg.norm(n, axis=-1, keepdims=True)
-    inner = valid[1:-1, 1:-1] & (length[..., 0] > 0)
-    n = np.where(inner[..., None], n / np.maximum(length, 1e-20), 0.0)
-    # Face the camera: the normal points against the viewing ray.
-    flip = np.sum(n * vertex_map[1:-1, 1:-1], axis=-1) > 0
-    n[flip] *= -1
-    normals[1:-1, 1:-1] = n
+    v = np.asarray(vertex_map, np.float32)
+    du = [v[1:-1, 2:, i] - v[1:-1, :-2, i] for i in range(3)]
+    dv = [v[2:, 1:-1, i] - v[:-2, 1:-1, i] for i in range(3)]
+    n = [du[1] * dv[2] - du[2] * dv[1], du[2] * dv[0] - du[0] * dv[2], du[0] * dv[1] - du[1] * dv[0]]
+    length = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    inner = valid[1:-1, 1:-1] & (length > 0)
+    # One factor per pixel: 1/|n| where valid, 0 elsewhere, negative to face the camera (the
+    # normal points against the viewing ray).
+    centre = v[1:-1, 1:-1]
+    toward = n[0] * centre[..., 0] + n[1] * centre[..., 1] + n[2] * centre[..., 2]
+    scale = np.where(inner, np.float32(1.0) / np.maximum(length, np.float32(1e-20)), np.float32(0.0))
+    scale = np.where(toward > 0, -scale, scale)
+    normals = np.zeros((h, w, 3), np.float32)
+    for i in range(3):
+        normals[1:-1, 1:-1, i] = n[i] * scale
     valid[1:-1, 1:-1] = inner
-    return normals.astype(np.float32), valid
+    return normals, valid
 
 
 def confidence_map(intrinsics: Intrinsics, phi: float) -> np.ndarray:

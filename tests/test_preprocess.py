@@ -3,7 +3,7 @@ import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.io.sequence import open_sequence
-from surfelwarp.preprocess import PreprocessParams, preprocess
+from surfelwarp.preprocess import PreprocessParams, bilateral_filter, preprocess
 
 from conftest import shared_data
 
@@ -60,3 +60,39 @@ def test_snoopy_frame0_within_paper_ranges():
     # Depth is clipped to the default range and invalid pixels carry no surfel.
     assert obs.depth_m[v].min() >= 0.1 and obs.depth_m[v].max() <= 3.0
     assert (obs.radius_map[~v] == 0).all() and (obs.confidence_map[~v] == 0).all()
+
+
+def _bilateral_reference(depth, params):
+    """The filter as written in the paper, one output pixel at a time (valid neighbours only)."""
+    r = params.bilateral_diameter_px // 2
+    h, w = depth.shape
+    out = np.zeros_like(depth)
+    for y, x in zip(*np.nonzero(depth > 0)):
+        num = den = 0.0
+        for dy in range(-r, r + 1):
+            for dx in range(-r, r + 1):
+                yy, xx = y + dy, x + dx
+                if 0 <= yy < h and 0 <= xx < w and depth[yy, xx] > 0:
+                    wgt = np.exp(-(dx * dx + dy * dy) / (2 * params.bilateral_sigma_space_px ** 2)
+                                 - (depth[yy, xx] - depth[y, x]) ** 2 / (2 * params.bilateral_sigma_depth_m ** 2))
+                    num, den = num + wgt * depth[yy, xx], den + wgt
+        out[y, x] = num / den
+    return out
+
+
+def test_bilateral_filter_matches_the_per_pixel_definition():
+    rng = np.random.default_rng(3)
+    depth = (1.0 + 0.01 * rng.standard_normal((24, 30))).astype(np.float32)
+    depth[:, 18:] += 0.2                       # an edge the range weight keeps
+    depth[rng.random(depth.shape) < 0.15] = 0  # holes, and the image border, take no part
+    params = PreprocessParams()
+    out = bilateral_filter(depth, params)
+    np.testing.assert_allclose(out, _bilateral_reference(depth, params), atol=2e-6)
+    assert (out[depth == 0] == 0).all()
+
+
+def test_bilateral_filter_keeps_a_constant_surface_beside_holes():
+    depth = np.full((20, 20), 1.5, np.float32)
+    depth[5:9, 5:9] = 0
+    out = bilateral_filter(depth, PreprocessParams())
+    np.testing.assert_allclose(out[depth > 0], 1.5, rtol=1e-6)
