@@ -103,37 +103,36 @@ def find_correspondences(maps: FusionMaps, obs: CameraObservation, live_confiden
     if (fine_h, fine_w) != (s * obs.valid.shape[0], s * obs.valid.shape[1]):
         raise ValueError(f"index map {maps.index.shape} is not {s}x the depth map {obs.valid.shape}")
     rows, cols = np.nonzero(obs.valid)
-    depth_v = obs.vertex_map[rows, cols].T        # (3, P): component-major gathers are faster
-    depth_n = obs.normal_map[rows, cols].T
-    confidence = np.asarray(live_confidence, np.float32)
-    flat_index = maps.index.reshape(-1)
-    points, normals = maps.points.T, maps.normals.T     # (3, N): component-major gathers
-    max_d2 = distance_gate_m(obs.depth_m[rows, cols], params) ** 2
-    r0, c0 = _window_origin(rows, s, w), _window_origin(cols, s, w)
-
+    # Every (pixel, window slot) at once, slots in row-major window order; a surfel sits on at
+    # most one fine pixel, so the candidates are at most the surfels drawn.
+    if w == s:      # the windows tile the map: pixel (r, c)'s is block (r, c)
+        k = maps.index.reshape(fine_h // s, s, fine_w // s, s)[rows, :, cols, :].reshape(len(rows), s * s)
+    else:
+        fr = _window_origin(rows, s, w)[:, None] + np.repeat(np.arange(w), w)[None, :]
+        fc = _window_origin(cols, s, w)[:, None] + np.tile(np.arange(w), w)[None, :]
+        inside = (fr >= 0) & (fr < fine_h) & (fc >= 0) & (fc < fine_w)
+        k = np.where(inside, maps.index.reshape(-1)[np.where(inside, fr * fine_w + fc, 0)], -1)
+    pix, slot = np.nonzero(k >= 0)
+    kc = k[pix, slot].astype(np.int64)
+    r, c = rows[pix], cols[pix]
+    diff = maps.points[kc] - obs.vertex_map[r, c]
+    d2 = np.einsum("ij,ij->i", diff, diff)
+    dot = np.einsum("ij,ij->i", maps.normals[kc], obs.normal_map[r, c])
+    ok = (d2 <= distance_gate_m(obs.depth_m[r, c], params) ** 2) & (dot >= params.normal_threshold)
+    pix, kc, d2 = pix[ok], kc[ok], d2[ok]
     best_k = np.full(len(rows), -1, np.int64)
-    best_c = np.full(len(rows), -np.inf, np.float32)
     best_d2 = np.full(len(rows), np.inf, np.float32)
-    for dy in range(w):
-        fr = r0 + dy
-        for dx in range(w):
-            fc = c0 + dx
-            inside = (fr >= 0) & (fr < fine_h) & (fc >= 0) & (fc < fine_w)
-            lin = np.where(inside, fr * fine_w + fc, 0)
-            k = np.where(inside, flat_index[lin], -1)
-            cand = np.flatnonzero(k >= 0)
-            if not len(cand):
-                continue
-            kc = k[cand]
-            diff = points[:, kc] - depth_v[:, cand]
-            d2 = np.einsum("ij,ij->j", diff, diff)
-            dot = np.einsum("ij,ij->j", normals[:, kc], depth_n[:, cand])
-            ok = (d2 <= max_d2[cand]) & (dot >= params.normal_threshold)
-            cand, kc, d2 = cand[ok], kc[ok], d2[ok]
-            c = confidence[kc]
-            better = (c > best_c[cand]) | ((c == best_c[cand]) & (d2 < best_d2[cand]))
-            cand = cand[better]
-            best_k[cand], best_c[cand], best_d2[cand] = kc[better], c[better], d2[better]
+    if len(pix):
+        # Per pixel (the candidates are grouped by pixel, slots in order): the highest
+        # confidence, then the smallest distance, then the first slot.
+        new_group = np.r_[True, pix[1:] != pix[:-1]]
+        starts, group = np.flatnonzero(new_group), np.cumsum(new_group) - 1
+        conf = np.asarray(live_confidence, np.float32)[kc]
+        top = conf == np.maximum.reduceat(conf, starts)[group]
+        d2_top = np.where(top, d2, np.float32(np.inf))
+        chosen = np.flatnonzero(top & (d2_top == np.minimum.reduceat(d2_top, starts)[group]))
+        chosen = chosen[np.r_[True, group[chosen][1:] != group[chosen][:-1]]]
+        best_k[pix[chosen]], best_d2[pix[chosen]] = kc[chosen], d2[chosen]
 
     found = best_k >= 0
     rows, cols, best_k, best_d2 = rows[found], cols[found], best_k[found], best_d2[found]
@@ -190,28 +189,25 @@ def unmatched_depth_pixels(obs: CameraObservation, fused_pixel_mask: np.ndarray,
     if maps is None:
         return unmatched
     rows, cols = np.nonzero(unmatched)
-    s, reach = maps.supersample, params.coverage_px * maps.supersample
-    fine_h, fine_w = maps.index.shape
-    depth_v, depth_n = obs.vertex_map[rows, cols].T, obs.normal_map[rows, cols].T
+    s, c = maps.supersample, params.coverage_px
+    h, w = unmatched.shape
+    depth_v, depth_n = obs.vertex_map[rows, cols], obs.normal_map[rows, cols]
     # The gate, plus the footprint of the pixels reached across.
     z = obs.depth_m[rows, cols]
     max_d2 = (distance_gate_m(z, params) + np.sqrt(2) * params.coverage_px * z / obs.intrinsics.focal_px) ** 2
-    r0, c0 = s * rows - reach, s * cols - reach
+    # The fine pixels coverage_px depth pixels around a pixel are the blocks of its neighbours.
+    blocks = maps.index.reshape(h, s, w, s)
     covered = np.zeros(len(rows), bool)
-    for dy in range(s + 2 * reach):
-        fr = r0 + dy
-        for dx in range(s + 2 * reach):
-            fc = c0 + dx
-            inside = (fr >= 0) & (fr < fine_h) & (fc >= 0) & (fc < fine_w)
-            k = np.where(inside, maps.index[np.clip(fr, 0, fine_h - 1), np.clip(fc, 0, fine_w - 1)], -1)
-            cand = np.flatnonzero((k >= 0) & ~covered)
-            if not len(cand):
-                continue
-            kc = k[cand]
-            diff = maps.points[kc].T - depth_v[:, cand]
-            near = np.einsum("ij,ij->j", diff, diff) <= max_d2[cand]
-            same_side = np.einsum("ij,ij->j", maps.normals[kc].T, depth_n[:, cand]) > 0
-            covered[cand[near & same_side]] = True
+    for dy in range(-c, c + 1):
+        for dx in range(-c, c + 1):
+            open_ = np.flatnonzero(~covered & (rows + dy >= 0) & (rows + dy < h) & (cols + dx >= 0) & (cols + dx < w))
+            k = blocks[rows[open_] + dy, :, cols[open_] + dx, :].reshape(len(open_), s * s)
+            pix, slot = np.nonzero(k >= 0)
+            kc, pix = k[pix, slot], open_[pix]
+            diff = maps.points[kc] - depth_v[pix]
+            near = np.einsum("ij,ij->i", diff, diff) <= max_d2[pix]
+            same_side = np.einsum("ij,ij->i", maps.normals[kc], depth_n[pix]) > 0
+            covered[pix[near & same_side]] = True
     unmatched[rows[covered], cols[covered]] = False
     return unmatched
 
