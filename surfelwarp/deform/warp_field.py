@@ -23,7 +23,8 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
-from surfelwarp.geometry.dual_quaternion import dq_apply, dq_blend_indexed, dq_from_transform, dq_to_transform
+from surfelwarp.geometry.dual_quaternion import (_components, apply_components, dq_apply, dq_blend_indexed,
+                                               dq_from_transform, dq_to_transform)
 from surfelwarp.geometry.se3 import se3_exp
 
 _CHUNK = 1 << 16   # points per warp batch: bounds the float64 temporaries
@@ -214,24 +215,38 @@ def update_skinning(knn: np.ndarray, weights: np.ndarray, points: np.ndarray, fi
         return knn, weights
     pts = np.asarray(points, np.float32).reshape(-1, 3)
     k = knn.shape[1]
-    old = knn.astype(np.int64)
-    d2_old = np.sum((pts[:, None, :].astype(np.float64) - field.nodes[old]) ** 2, axis=-1)
+    tree = KDTree(new)
+    nearest, _ = tree.query(pts, k=1)
+    nearest = nearest.reshape(-1).astype(np.float64) ** 2
+    # A float32 screen of the farthest current neighbour (with a margin over its rounding) picks
+    # the few points a new node may come nearer; their distances are then taken in float64.
+    nodes32 = np.asarray(field.nodes, np.float32)
+    reach32 = np.zeros(len(pts), np.float32)
+    for s in range(k):
+        q = nodes32[knn[:, s]]
+        q -= pts
+        np.maximum(reach32, np.einsum("ij,ij->i", q, q), out=reach32)
+    padded = np.zeros(len(pts), bool)
+    for s in range(1, k):
+        padded |= np.any(knn[:, :s] == knn[:, s:s + 1], axis=1)
+    rows = np.flatnonzero(padded | (nearest < reach32 * (1 + 1e-4) + 1e-12))
+    old = knn[rows].astype(np.int64)
+    d2_old = np.sum((pts[rows, None, :].astype(np.float64) - field.nodes[old]) ** 2, axis=-1)
     # Padding slots repeat an earlier node: they must not be kept twice.
     for s in range(1, k):
         d2_old[:, s][np.any(old[:, :s] == old[:, s:s + 1], axis=1)] = np.inf
-    tree = KDTree(new)
-    nearest, _ = tree.query(pts, k=1)
     reach = np.max(np.where(np.isfinite(d2_old), d2_old, -1.0), axis=1)
     full = np.isinf(d2_old).any(axis=1)            # a padding slot: any new node is nearer
-    hit = np.flatnonzero(full | (nearest.reshape(-1).astype(np.float64) ** 2 < reach))
+    sub = np.flatnonzero(full | (nearest[rows] < reach))
+    hit, d2_old, old = rows[sub], d2_old[sub], old[sub]
     if len(hit) == 0:
         return knn, weights
     j = min(k, len(new))
     d, idx = tree.query(pts[hit], k=j)
     d2_new = d.reshape(len(hit), j).astype(np.float64) ** 2
     idx_new = idx.reshape(len(hit), j).astype(np.int64) + first_new_node
-    d2 = np.concatenate([d2_old[hit], d2_new], 1)
-    idx = np.concatenate([old[hit], idx_new], 1)
+    d2 = np.concatenate([d2_old, d2_new], 1)
+    idx = np.concatenate([old, idx_new], 1)
     order = np.argsort(d2, axis=1, kind="stable")[:, :k]
     d2, idx = np.take_along_axis(d2, order, 1), np.take_along_axis(idx, order, 1)
     # Replace infinite (padding) slots by the nearest node again, weight 0.
@@ -276,13 +291,25 @@ def inverse_warp(live_points: np.ndarray, live_normals: np.ndarray | None, knn: 
     """Live points/normals -> reference ones (SurfelWarp Eq. 3); knn/weights are those of the
     reference positions."""
     live_points = np.asarray(live_points)
-    T = dq_to_transform(blend(knn, weights, field))
-    R = T[:, :3, :3]
-    ref = np.einsum("nji,nj->ni", R, live_points - T[:, :3, 3]).astype(_out_dtype(live_points))
-    if live_normals is None:
-        return ref, None
-    n = np.asarray(live_normals)
-    return ref, np.einsum("nji,nj->ni", R, n).astype(_out_dtype(n))
+    ref_p, ref_n = np.empty(live_points.shape, _out_dtype(live_points)), None
+    if live_normals is not None:
+        live_normals = np.asarray(live_normals)
+        ref_n = np.empty(live_normals.shape, _out_dtype(live_normals))
+    dqs, knn = field.dual_quaternions(), np.asarray(knn)
+    for s in range(0, len(live_points), _CHUNK):
+        part = slice(s, s + _CHUNK)
+        # W^-1 x = R^T (x - t): t is where W takes the origin; R^T turns by the conjugate.
+        w, x, y, z, *dual = _components(dq_blend_indexed(dqs, knn[part], weights[part])[0])
+        zero = np.zeros_like(w)
+        t, _ = apply_components((w, x, y, z, *dual), (zero, zero, zero))
+        conjugate = (w, -x, -y, -z, zero, zero, zero, zero)
+        p = _components(live_points[part])
+        n = None if live_normals is None else _components(live_normals[part])
+        p, n = apply_components(conjugate, [p[i] - t[i] for i in range(3)], n)
+        ref_p[part] = np.stack(p, axis=-1)
+        if n is not None:
+            ref_n[part] = np.stack(n, axis=-1)
+    return ref_p, ref_n
 
 
 def warp_transforms_at(field: WarpField, points: np.ndarray) -> np.ndarray:
