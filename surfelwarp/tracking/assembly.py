@@ -113,6 +113,25 @@ def pair_blocks(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out
 
 
+def pair_block_parts(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(E, 16): v u^T, u, v and 1, which pair_blocks(u, v) is linear in: a weighted sum of many
+    pair blocks is the blocks of the summed parts (blocks_from_parts), 16 numbers summed per
+    residual instead of 36."""
+    return np.concatenate([(v[:, :, None] * u[:, None, :]).reshape(-1, 9), u, v, np.ones((len(u), 1))], axis=1)
+
+
+def blocks_from_parts(parts: np.ndarray) -> np.ndarray:
+    """(N, 6, 6) pair blocks of summed pair_block_parts (N, 16)."""
+    vu = parts[:, :9].reshape(-1, 3, 3)
+    out = np.empty((len(parts), 6, 6))
+    out[:, :3, :3] = -vu
+    out[:, [0, 1, 2], [0, 1, 2]] += np.trace(vu, axis1=1, axis2=2)[:, None]
+    out[:, :3, 3:] = skew(parts[:, 9:12])
+    out[:, 3:, :3] = -skew(parts[:, 12:15])
+    out[:, 3:, 3:] = parts[:, 15, None, None] * np.eye(3)
+    return out
+
+
 CHUNK = 1 << 15     # correspondences / surfels per batch: keeps the temporaries in cache
 
 

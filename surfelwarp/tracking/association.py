@@ -21,19 +21,23 @@ class DepthPairs:
 
 
 class DepthTargets:
-    """The depth maps of one solve in world coordinates, as flat components (3, H*W), so that
-    association gathers 1-D arrays and transforms nothing per iteration."""
+    """The valid depth pixels of one solve in world coordinates, as components (3, V), and each
+    pixel's column among them (-1: invalid), so that association gathers 1-D arrays and
+    transforms nothing per iteration."""
 
     def __init__(self, depth_vertex_map, depth_normal_map, depth_valid, intrinsics, T_camera_to_world):
         T_cw = np.asarray(T_camera_to_world, np.float64)
         self.T_wc = invert(T_cw)
         self.intrinsics = intrinsics
         self.shape = np.shape(depth_valid)
-        self.valid = np.asarray(depth_valid, bool).reshape(-1)
+        pixels = np.flatnonzero(np.asarray(depth_valid, bool))
+        self.column = np.full(int(np.prod(self.shape)), -1, np.int64)
+        self.column[pixels] = np.arange(len(pixels))
         R, t = T_cw[:3, :3], T_cw[:3, 3]
-        with np.errstate(invalid="ignore", over="ignore"):      # invalid pixels are never read
-            self.vertex = np.array(rigid_components(R, t, np.asarray(depth_vertex_map, np.float64).reshape(-1, 3).T))
-            self.normal = np.array(rigid_components(R, np.zeros(3), np.asarray(depth_normal_map, np.float64).reshape(-1, 3).T))
+        vertex = np.asarray(depth_vertex_map).reshape(-1, 3)[pixels].T.astype(np.float64)
+        normal = np.asarray(depth_normal_map).reshape(-1, 3)[pixels].T.astype(np.float64)
+        self.vertex = np.array(rigid_components(R, t, vertex))
+        self.normal = np.array(rigid_components(R, np.zeros(3), normal))
 
 
 def rigid_components(R: np.ndarray, t: np.ndarray, p) -> list[np.ndarray]:
@@ -54,10 +58,10 @@ def associate_components(live, live_n, targets: DepthTargets, distance_gate_m: f
     v = np.rint(intr.fy * qy / z + intr.cy)
     inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
     index = np.flatnonzero(inside)
-    pixel = v[index].astype(np.int64) * w + u[index].astype(np.int64)
-    ok = targets.valid[pixel]
-    index, pixel = index[ok], pixel[ok]
-    dv, dn = targets.vertex[:, pixel], targets.normal[:, pixel]
+    column = targets.column[v[index].astype(np.int64) * w + u[index].astype(np.int64)]
+    ok = column >= 0
+    index, column = index[ok], column[ok]
+    dv, dn = targets.vertex[:, column], targets.normal[:, column]
     diff = live[:, index] - dv
     keep = (np.einsum("ic,ic->c", diff, diff) < distance_gate_m ** 2) & \
            (np.einsum("ic,ic->c", live_n[:, index], dn) > min_normal_cos)

@@ -11,7 +11,7 @@ import numpy as np
 
 from surfelwarp.deform.warp_field import WarpField
 from surfelwarp.geometry.se3 import skew
-from surfelwarp.tracking.assembly import BlockPattern, NormalEquations, pair_blocks
+from surfelwarp.tracking.assembly import BlockPattern, NormalEquations, blocks_from_parts, pair_block_parts
 from surfelwarp.tracking.terms import BaseTerm, Iterate, Problem, register
 
 
@@ -57,7 +57,7 @@ def regulariser_blocks(field: WarpField, pattern: BlockPattern) -> tuple[np.ndar
     # where j < i (the minus sign is in the scatter matrix).
     u = np.concatenate([a, t, np.where(flip, t, a)])
     v = np.concatenate([a, t, np.where(flip, a, t)])
-    blocks = pattern.reg_blocks(pair_blocks(u, v).reshape(-1, 36)).reshape(-1, 6, 6)
+    blocks = blocks_from_parts(pattern.reg_blocks(pair_block_parts(u, v)))
     nodes = np.concatenate([pattern.edge_i, pattern.edge_j])
     gv = np.concatenate([np.concatenate([np.cross(a, rr), rr], 1), -np.concatenate([np.cross(t, rr), rr], 1)])
     g = np.bincount((6 * nodes[:, None] + np.arange(6)).reshape(-1), gv.reshape(-1), minlength=6 * m)

@@ -16,7 +16,7 @@ from surfelwarp.deform.warp_field import WarpField, apply_update
 from surfelwarp.geometry.se3 import se3_exp
 from surfelwarp.tracking.anchors import (AnchorTerm, anchor_residuals, common_motion, deviation_m, follow_motion,
                                          seen_deviation_m, seen_directions)
-from surfelwarp.tracking.assembly import Border, NormalEquations, pair_blocks
+from surfelwarp.tracking.assembly import Border, NormalEquations, blocks_from_parts, pair_block_parts
 from surfelwarp.tracking.linear import solve_system
 from surfelwarp.tracking.terms import BaseTerm, Iterate, Problem, register
 
@@ -32,13 +32,13 @@ def anchor_terms(field: WarpField, anchor: AnchorTerm, G: np.ndarray = np.eye(4)
     res, z = anchor_residuals(field.transforms, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
     m = field.num_nodes
     mu = anchor.mu[:, None, None]
-    blocks = pair_blocks(z.reshape(-1, 3), z.reshape(-1, 3)).reshape(m, 4, 6, 6).sum(axis=1)
+    blocks = blocks_from_parts(pair_block_parts(z.reshape(-1, 3), z.reshape(-1, 3)).reshape(m, 4, 16).sum(axis=1))
     g = np.concatenate([np.cross(z, res), res], axis=-1).sum(axis=1)
     border = None
     if center is not None:
         q = (field.nodes[:, None, :] + z - res - center).reshape(-1, 3)
-        coupling = -mu * pair_blocks(z.reshape(-1, 3), q).reshape(m, 4, 6, 6).sum(axis=1)
-        own = np.einsum("m,mij->ij", anchor.mu, pair_blocks(q, q).reshape(m, 4, 6, 6).sum(axis=1))
+        coupling = -mu * blocks_from_parts(pair_block_parts(z.reshape(-1, 3), q).reshape(m, 4, 16).sum(axis=1))
+        own = blocks_from_parts((np.repeat(anchor.mu, 4)[:, None] * pair_block_parts(q, q)).sum(axis=0)[None])[0]
         gz = -np.einsum("m,mai->i", anchor.mu, np.concatenate([np.cross(q.reshape(m, 4, 3), res), res], axis=-1))
         border = (coupling, own, gz)
     return mu * blocks, anchor.mu[:, None] * g, border
