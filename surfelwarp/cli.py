@@ -1,4 +1,4 @@
-"""`surfelwarp` command line: run, compare, synth, eval (argparse only; the work is elsewhere)."""
+"""`surfelwarp` command line: run, compare, bench, synth, eval (argparse only; the work is elsewhere)."""
 from __future__ import annotations
 
 import argparse
@@ -25,11 +25,12 @@ def _frame_list(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"expected frame numbers separated by commas, got {text!r}") from None
 
 
-def _add_input_arguments(p: argparse.ArgumentParser, out_help: str) -> None:
-    """The flags `run` and `compare` share: the input, its reading and preprocessing, the outputs."""
+def _add_input_arguments(p: argparse.ArgumentParser, out_help: str, out_required: bool = True,
+                         save_every: int = 10) -> None:
+    """The flags `run`, `compare` and `bench` share: the input, its reading and preprocessing, the outputs."""
     p.add_argument("input", type=Path, help="sequence folder (any layout of docs/formats.md)")
-    p.add_argument("--out", type=Path, required=True, help=out_help)
-    p.add_argument("--save-every", type=_positive_int, default=10, metavar="K",
+    p.add_argument("--out", type=Path, required=out_required, default=None, help=out_help)
+    p.add_argument("--save-every", type=_positive_int, default=save_every, metavar="K",
                    help="write live/frame-%%06d.ply every K processed frames (and the last)")
     p.add_argument("--intrinsics", metavar="FX,FY,CX,CY", help="override the intrinsics file")
     p.add_argument("--depth-scale", type=float, default=1000.0, help="PNG units per metre (default 1000)")
@@ -64,6 +65,15 @@ def _add_compare_arguments(p: argparse.ArgumentParser) -> None:
                    help="DynamicFusion regularises through its hierarchical deformation tree")
     p.add_argument("--render-frames", type=_frame_list, default=None, metavar="F1,F2,..",
                    help="frames whose live models are rendered as normal maps (default: up to 3 saved ones)")
+
+
+def _add_bench_arguments(p: argparse.ArgumentParser) -> None:
+    _add_input_arguments(p, "keep the runs in this folder (default: a temporary one)", out_required=False,
+                         save_every=100)
+    p.add_argument("--compare-with", choices=("dynamicfusion",), default=None,
+                   help="run the baseline on the same frames and print the speed ratios")
+    p.add_argument("--open3d", action="store_true",
+                   help="time Open3D's dense SLAM on the same frames (needs the 'bench' extra, open3d-cpu)")
 
 
 def _preprocess_params(args: argparse.Namespace):
@@ -164,6 +174,20 @@ def cmd_compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    from surfelwarp.report.bench import bench
+    from surfelwarp.report.runner import CompareSpec
+
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        raise InputError(args.out, "output path exists and is not a folder")
+    spec = CompareSpec(input=args.input, out=args.out, intrinsics=_intrinsics(args), depth_scale=args.depth_scale,
+                       start=args.start, max_frames=args.max_frames, save_every=args.save_every,
+                       preprocess=_preprocess_params(args), surfelwarp_fusion=not args.no_fusion,
+                       progress=False if args.no_progress else None)
+    print(bench(spec, args.compare_with, args.open3d))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="surfelwarp", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -173,6 +197,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("compare", help="run SurfelWarp and DynamicFusion on the same frames, write report.md")
     _add_compare_arguments(p)
     p.set_defaults(func=cmd_compare)
+    p = sub.add_parser("bench", help="time a sequence stage by stage (and against DynamicFusion, Open3D)")
+    _add_bench_arguments(p)
+    p.set_defaults(func=cmd_bench)
     try:
         from surfelwarp.data_tools import evaluate, synth
     except ImportError:

@@ -59,10 +59,10 @@ TRACKER_STAGES = ("solver_maps", "rigid", "predict", "nonrigid")
 
 def speed(metrics: dict[str, dict]) -> dict:
     """Median milliseconds per frame (frames after the first, which only initialises) of each
-    method: total, input, shared tracker and model update (every other stage), and the ratio
-    DynamicFusion / SurfelWarp of the median totals."""
+    method: total, input, shared tracker and model update (every other stage), and, given both
+    methods, the ratios DynamicFusion / SurfelWarp of the median totals and model updates."""
     out = {}
-    for name in METHODS:
+    for name in (n for n in METHODS if n in metrics):
         frames = metrics[name]["frames"][1:] or metrics[name]["frames"]
         group = lambda f, names: sum(v for k, v in f["seconds"].items() if k in names)  # noqa: E731
         rows = {"total": [f["seconds"]["total"] for f in frames],
@@ -70,8 +70,11 @@ def speed(metrics: dict[str, dict]) -> dict:
                 "tracker": [group(f, TRACKER_STAGES) for f in frames],
                 "model": [f["seconds"]["total"] - group(f, INPUT_STAGES + TRACKER_STAGES) for f in frames]}
         out[name] = {k: 1000 * float(np.median(v)) for k, v in rows.items()}
+    if len(out) < len(METHODS):
+        return out
     sw, df = out["surfelwarp"], out["dynamicfusion"]
     out["ratio"] = df["total"] / sw["total"] if sw["total"] > 0 else float("nan")
+    out["model_ratio"] = df["model"] / sw["model"] if sw["model"] > 0 else float("nan")
     # SurfelWarp can be no faster than its input + tracker, whatever its model update costs.
     out["ratio_bound"] = df["total"] / (sw["input"] + sw["tracker"]) if sw["input"] + sw["tracker"] > 0 else float("nan")
     return out

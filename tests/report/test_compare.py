@@ -138,15 +138,17 @@ def fake_metrics(seconds: dict[str, dict[str, float]], fusion=False) -> dict:
 
 def test_speed_splits_tracking_from_the_model_update():
     metrics = fake_metrics({"surfelwarp": {"read": 0.01, "preprocess": 0.04, "solver_maps": 0.05, "rigid": 0.05,
-                                           "nonrigid": 0.1, "warp": 0.01},
+                                           "nonrigid": 0.2, "warp": 0.01},
                             "dynamicfusion": {"read": 0.01, "preprocess": 0.04, "solver_maps": 0.02, "rigid": 0.05,
                                               "predict": 0.03, "nonrigid": 0.15, "warp": 0.2, "fusion": 0.05}})
     sp = speed(metrics)
-    assert sp["surfelwarp"] == pytest.approx({"total": 260, "input": 50, "tracker": 200, "model": 10})
+    assert sp["surfelwarp"] == pytest.approx({"total": 360, "input": 50, "tracker": 300, "model": 10})
     assert sp["dynamicfusion"] == pytest.approx({"total": 550, "input": 50, "tracker": 250, "model": 250})
-    assert sp["ratio"] == pytest.approx(550 / 260) and sp["ratio_bound"] == pytest.approx(550 / 250)
+    assert sp["ratio"] == pytest.approx(550 / 360) and sp["ratio_bound"] == pytest.approx(550 / 350)
+    assert sp["model_ratio"] == pytest.approx(25)
     text = "\n".join(speed_lines(metrics))
-    assert "SurfelWarp is 2.12x faster" in text and "at most 2.20x faster" in text and "template tracking" in text
+    assert "SurfelWarp is 1.53x faster per frame than DynamicFusion, 25.00x in the model update" in text
+    assert "at most 1.57x faster" in text and "template tracking" in text and "| model update (all other stages) | 10 | 250 | 25.00x |" in text
     metrics["surfelwarp"]["config"]["method"]["fusion_enabled"] = True
     assert "surfel fusion (`fusion=True`)" in "\n".join(speed_lines(metrics))
     assert "unknown variant" in surfelwarp_variant({"config": {"method": {"fusion": {"max_weight": 1}}}})

@@ -1,0 +1,132 @@
+"""`surfelwarp bench SEQ`: where a frame's time goes, stage by stage, and how it grows with the model.
+
+SurfelWarp (and with --compare-with dynamicfusion the baseline, on the same frames) runs in a
+fresh process as `compare` runs it; from its metrics.json the benchmark prints, as markdown:
+per-stage medians (frames after the first, which only initialises), ms per 100k surfels of
+every stage at three model sizes (the frames in thirds by surfel count), bytes per surfel of the
+whole surfel model (surfel arrays and warp field), and the ratios DynamicFusion / SurfelWarp per
+frame and in the model update (every stage after the shared tracker). With --open3d, Open3D's
+dense SLAM (open3d.t.pipelines.slam on the CPU, depth only) tracks and fuses the same frames as
+a reference for what a compiled CPU pipeline does per frame.
+
+The machine is shared and noisy: compare ratios measured in one run, not times across runs.
+"""
+from __future__ import annotations
+
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from surfelwarp.report.document import speed_lines
+from surfelwarp.report.metrics import load_metrics, speed, stage_seconds
+from surfelwarp.report.runner import LABELS, CompareSpec, open_input, run_in_child
+
+MEMORY_TARGET_BYTES = 208      # per surfel: the CUDA original's double buffer
+OPEN3D_VOXEL_M = 0.0058        # as in the issue's measurement on 7-Scenes
+
+
+@dataclass(frozen=True)
+class Open3DResult:
+    median_frame_ms: float
+    frames: int
+    voxel_m: float
+
+
+def stage_table(metrics: dict) -> list[str]:
+    """Per-stage median ms, and ms per 100k surfels at three model sizes (SurfelWarp only)."""
+    frames, seconds = stage_seconds(metrics)
+    later = slice(1, None) if len(frames) > 1 else slice(None)
+    surfels = np.array([f.get("surfels") or 0 for f in metrics["frames"]], float)[later]
+    thirds = [t for t in np.array_split(np.argsort(surfels, kind="stable"), 3) if len(t)] if surfels.any() else []
+    head = "| stage | median ms |" + "".join(f" ms/100k surfels at {np.median(surfels[t]) / 1000:.0f}k |"
+                                           for t in thirds)
+    lines = [head, "|---|---:|" + "---:|" * len(thirds)]
+    totals = np.array([f["seconds"]["total"] for f in metrics["frames"]])[later]
+    for stage, s in list(seconds.items()) + [("total", totals)]:
+        s = s if stage == "total" else s[later]
+        if not s.any():
+            continue
+        per = "".join(f" {1e5 * np.median(1000 * s[t] / np.maximum(surfels[t], 1)):.1f} |" for t in thirds)
+        lines.append(f"| {stage} | {1000 * np.median(s):.1f} |{per}")
+    return lines
+
+
+def memory_line(metrics: dict) -> str | None:
+    last = metrics["frames"][-1]
+    if not last.get("surfels") or not last.get("model_bytes"):
+        return None
+    per = last["model_bytes"] / last["surfels"]
+    verdict = "within" if per <= MEMORY_TARGET_BYTES else "above"
+    return (f"Model memory: {last['model_bytes'] / 2 ** 20:.1f} MiB for {last['surfels']} surfels and "
+            f"{last.get('nodes', 0)} nodes, **{per:.0f} bytes per surfel** ({verdict} the "
+            f"{MEMORY_TARGET_BYTES}-byte target); peak RSS {metrics['summary']['peak_rss_mb']:.0f} MiB.")
+
+
+def run_open3d(spec: CompareSpec, voxel_m: float = OPEN3D_VOXEL_M) -> Open3DResult:
+    """Open3D's dense SLAM on the spec's frames (depth only: the colour is a constant); ImportError
+    when open3d is not installed."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)   # no colour: warns every frame
+    seq = open_input(spec)
+    K = seq.intrinsics
+    device = o3c.Device("CPU:0")
+    intrinsic = o3c.Tensor([[K.fx, 0, K.cx], [0, K.fy, K.cy], [0, 0, 1]], o3c.Dtype.Float64)
+    slam = o3d.t.pipelines.slam
+    model = slam.Model(voxel_m, 16, 40000, o3c.Tensor(np.eye(4)), device)
+    frame, raycast = slam.Frame(K.height, K.width, intrinsic, device), slam.Frame(K.height, K.width, intrinsic, device)
+    grey = o3d.t.geometry.Image(o3c.Tensor(np.full((K.height, K.width, 3), 128, np.uint8)))
+    scale, near, far = 1000.0, spec.preprocess.clip_near_m, spec.preprocess.clip_far_m
+    T = o3c.Tensor(np.eye(4))
+    seconds = []
+    for i, (_, depth_m) in enumerate(seq.frames()):
+        t0 = time.perf_counter()
+        depth = np.where((depth_m >= near) & (depth_m <= far), depth_m * scale, 0).astype(np.uint16)
+        frame.set_data_from_image("depth", o3d.t.geometry.Image(o3c.Tensor(depth)))
+        frame.set_data_from_image("color", grey)
+        if i > 0:
+            result = model.track_frame_to_model(frame, raycast, scale, far, 0.07)
+            T = T @ result.transformation
+        model.update_frame_pose(i, T)
+        model.integrate(frame, scale, far, 8.0)
+        model.synthesize_model_frame(raycast, scale, near, far, 8.0, False)
+        seconds.append(time.perf_counter() - t0)
+    later = seconds[1:] or seconds
+    return Open3DResult(1000 * float(np.median(later)), len(seconds), voxel_m)
+
+
+def bench(spec: CompareSpec, compare_with: str | None = None, open3d: bool = False) -> str:
+    """Run and report (markdown). The runs go to spec.out, or a temporary folder if it is None."""
+    names = ["surfelwarp"] + ([compare_with] if compare_with else [])
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(spec.out) if spec.out is not None else Path(tmp)
+        run_spec = CompareSpec(**{**spec.__dict__, "out": out})
+        open_input(run_spec)                      # bad input fails here, before any run
+        for name in names:
+            run_in_child(name, run_spec)
+        metrics = {name: load_metrics(out / name) for name in names}
+    lines = [f"# Benchmark of {spec.input}", "", f"{metrics['surfelwarp']['summary']['frames']} frames.", ""]
+    for name in names:
+        lines += [f"## {LABELS[name]}: stages", "", *stage_table(metrics[name]), ""]
+    memory = memory_line(metrics["surfelwarp"])
+    if memory:
+        lines += [memory, ""]
+    if compare_with:
+        lines += speed_lines(metrics)
+    if open3d:
+        lines += ["## Open3D dense SLAM", ""]
+        try:
+            o3 = run_open3d(run_spec)
+        except ImportError as exc:
+            lines += [f"Open3D is not available ({exc}): `pip install 'surfelwarp[bench]'` installs open3d-cpu, "
+                      "which also needs the system's libusb-1.0-0.", ""]
+        else:
+            sw = speed({"surfelwarp": metrics["surfelwarp"]})["surfelwarp"]["total"]
+            lines += [f"Open3D (CPU, depth only, {1000 * o3.voxel_m:.1f} mm voxels): {o3.median_frame_ms:.0f} ms "
+                      f"per frame over {o3.frames} frames; SurfelWarp {sw:.0f} ms, "
+                      f"**{sw / o3.median_frame_ms:.1f}x Open3D's time**.", ""]
+    return "\n".join(lines)

@@ -1,0 +1,56 @@
+"""`surfelwarp bench`: per-stage medians, cost per 100k surfels at three model sizes, bytes per surfel."""
+import subprocess
+import sys
+
+import pytest
+
+from surfelwarp.data_tools import synth
+from surfelwarp.report.bench import memory_line, stage_table
+
+
+def fake_run(surfels, seconds_per_100k):
+    """metrics.json of a run whose one model stage costs seconds_per_100k per 100k surfels."""
+    frames = [{"frame": i, "surfels": n, "nodes": 10, "model_bytes": 100 * n,
+               "seconds": {"read": 0.001, "fuse": seconds_per_100k * n / 1e5,
+                           "total": 0.001 + seconds_per_100k * n / 1e5}} for i, n in enumerate(surfels)]
+    return {"frames": frames, "summary": {"peak_rss_mb": 50.0}}
+
+
+def test_stage_table_gives_the_cost_per_100k_surfels_at_three_sizes():
+    metrics = fake_run([5_000] + [10_000] * 3 + [20_000] * 3 + [40_000] * 3, 0.03)
+    lines = stage_table(metrics)
+    assert lines[0] == ("| stage | median ms | ms/100k surfels at 10k | ms/100k surfels at 20k |"
+                        " ms/100k surfels at 40k |")
+    fuse = next(line for line in lines if line.startswith("| fuse |"))
+    assert fuse == "| fuse | 6.0 | 30.0 | 30.0 | 30.0 |"        # the first frame is left out
+    assert "| read | 1.0 |" in "\n".join(lines)
+
+
+def test_memory_line_states_bytes_per_surfel_against_the_target():
+    line = memory_line(fake_run([1000, 2000], 0.01))
+    assert "**100 bytes per surfel** (within the 208-byte target)" in line and "2000 surfels" in line
+    metrics = fake_run([1000], 0.01)
+    metrics["frames"][0]["model_bytes"] = 300_000
+    assert "above the 208-byte target" in memory_line(metrics)
+
+
+@pytest.mark.slow
+def test_bench_runs_both_methods_and_prints_the_ratios(tmp_path):
+    seq = synth.generate("sheet", tmp_path / "sheet", frames=4, size=(160, 120))
+    proc = subprocess.run([sys.executable, "-m", "surfelwarp", "bench", str(seq), "--compare-with", "dynamicfusion",
+                           "--open3d", "--out", str(tmp_path / "runs")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    text = proc.stdout
+    for part in ("## SurfelWarp: stages", "## DynamicFusion: stages", "bytes per surfel", "x in the model update",
+                 "| nonrigid |", "## Open3D dense SLAM"):
+        assert part in text, text
+    assert ("x Open3D's time" in text) or ("Open3D is not available" in text)
+    assert (tmp_path / "runs" / "surfelwarp" / "metrics.json").exists()
+
+
+def test_bench_rejects_bad_input_with_one_line(tmp_path):
+    (tmp_path / "empty").mkdir()
+    proc = subprocess.run([sys.executable, "-m", "surfelwarp", "bench", str(tmp_path / "empty")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and str(tmp_path / "empty") in proc.stderr
