@@ -32,8 +32,11 @@ class Bordered:
 
     def __matmul__(self, p: np.ndarray) -> np.ndarray:
         x, z = p[:-6], p[-6:]
-        top = self.H @ x + (self.B @ z).reshape(-1)
-        return np.concatenate([top, np.einsum("mij,mi->j", self.B, x.reshape(-1, 6)) + self.C @ z])
+        out = np.empty_like(p)
+        out[:-6] = self.H @ x
+        out[:-6] += np.einsum("mij,j->mi", self.B, z).reshape(-1)
+        out[-6:] = np.einsum("mij,mi->j", self.B, x.reshape(-1, 6)) + self.C @ z
+        return out
 
     def tosparse(self) -> sp.csr_matrix:
         m = len(self.B)
