@@ -53,6 +53,11 @@ class RigidInformation:
     def of_pairs(cls, points: np.ndarray, normals: np.ndarray, weights: np.ndarray | None = None
                  ) -> "RigidInformation":
         """From (3, M) world points and normals (components), weights (M,) or None."""
+        return cls._with_rows(points, normals, weights)[0]
+
+    @classmethod
+    def _with_rows(cls, points, normals, weights) -> tuple["RigidInformation", np.ndarray]:
+        """of_pairs, and the pairs' Jacobian rows (6, M) in its parametrisation."""
         p, n = np.asarray(points, np.float64), np.asarray(normals, np.float64)
         w = np.ones(p.shape[1]) if weights is None else np.asarray(weights, np.float64)
         total = max(float(w.sum()), 1e-12)
@@ -60,7 +65,7 @@ class RigidInformation:
         q = p - centre[:, None]
         length = max(float(np.sqrt(np.einsum("ij,ij,j->", q, q, w) / total)), 1e-3)
         J = _rows(q, n, length)
-        return cls((J * w) @ J.T, Parametrisation(centre, length))
+        return cls((J * w) @ J.T, Parametrisation(centre, length)), J
 
     def ratios(self) -> tuple[np.ndarray, np.ndarray]:
         """(6,) eigenvalues over the largest (ascending; all 0 without information) and the
@@ -116,9 +121,7 @@ def step(points: np.ndarray, normals: np.ndarray, residuals: np.ndarray, weights
          min_eigen_ratio: float) -> tuple[np.ndarray, RigidInformation]:
     """The weighted point-to-plane Gauss-Newton twist (omega, v) for exp(xi) p, remapped to
     the directions the pairs constrain; and the pairs' information."""
-    info = RigidInformation.of_pairs(points, normals, weights)
-    p = np.asarray(points, np.float64)
-    J = _rows(p - info.frame.centre[:, None], np.asarray(normals, np.float64), info.frame.length_m)
+    info, J = RigidInformation._with_rows(points, normals, weights)
     r = np.asarray(residuals, np.float64)
     g = J @ (r if weights is None else np.asarray(weights, np.float64) * r)
     return info.solve(g, min_eigen_ratio), info
