@@ -61,10 +61,11 @@ def associate_components(live, live_n, targets: DepthTargets, distance_gate_m: f
     column = targets.column[v[index].astype(np.int64) * w + u[index].astype(np.int64)]
     ok = column >= 0
     index, column = index[ok], column[ok]
-    dv, dn = targets.vertex[:, column], targets.normal[:, column]
-    diff = live[:, index] - dv
+    # np.take: several times faster than fancy indexing for gathers of 2-D arrays.
+    dv, dn = np.take(targets.vertex, column, axis=1), np.take(targets.normal, column, axis=1)
+    diff = np.take(live, index, axis=1) - dv
     keep = (np.einsum("ic,ic->c", diff, diff) < distance_gate_m ** 2) & \
-           (np.einsum("ic,ic->c", live_n[:, index], dn) > min_normal_cos)
+           (np.einsum("ic,ic->c", np.take(live_n, index, axis=1), dn) > min_normal_cos)
     return DepthPairs(index[keep], dv[:, keep].T, dn[:, keep].T)    # (C, 3) views of (3, C) arrays
 
 

@@ -115,9 +115,9 @@ def find_correspondences(maps: FusionMaps, obs: CameraObservation, live_confiden
     pix, slot = np.nonzero(k >= 0)
     kc = k[pix, slot].astype(np.int64)
     r, c = rows[pix], cols[pix]
-    diff = maps.points[kc] - obs.vertex_map[r, c]
+    diff = np.take(maps.points, kc, axis=0) - obs.vertex_map[r, c]
     d2 = np.einsum("ij,ij->i", diff, diff)
-    dot = np.einsum("ij,ij->i", maps.normals[kc], obs.normal_map[r, c])
+    dot = np.einsum("ij,ij->i", np.take(maps.normals, kc, axis=0), obs.normal_map[r, c])
     ok = (d2 <= distance_gate_m(obs.depth_m[r, c], params) ** 2) & (dot >= params.normal_threshold)
     pix, kc, d2 = pix[ok], kc[ok], d2[ok]
     best_k = np.full(len(rows), -1, np.int64)
@@ -204,9 +204,9 @@ def unmatched_depth_pixels(obs: CameraObservation, fused_pixel_mask: np.ndarray,
             k = blocks[rows[open_] + dy, :, cols[open_] + dx, :].reshape(len(open_), s * s)
             pix, slot = np.nonzero(k >= 0)
             kc, pix = k[pix, slot], open_[pix]
-            diff = maps.points[kc] - depth_v[pix]
+            diff = np.take(maps.points, kc, axis=0) - np.take(depth_v, pix, axis=0)
             near = np.einsum("ij,ij->i", diff, diff) <= max_d2[pix]
-            same_side = np.einsum("ij,ij->i", maps.normals[kc], depth_n[pix]) > 0
+            same_side = np.einsum("ij,ij->i", np.take(maps.normals, kc, axis=0), np.take(depth_n, pix, axis=0)) > 0
             covered[pix[near & same_side]] = True
     unmatched[rows[covered], cols[covered]] = False
     return unmatched

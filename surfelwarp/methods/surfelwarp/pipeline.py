@@ -102,8 +102,10 @@ class SurfelWarpMethod:
         timer.lap("rigid")
 
         # Non-rigid warp field on the visible surfels; its common rigid motion goes into the pose.
-        visible = np.unique(maps.index[maps.index >= 0])
-        surfels = SurfelSet(m.ref_position[visible], m.ref_normal[visible], m.knn[visible], m.weights[visible])
+        seen = np.zeros(len(m), bool)
+        seen[maps.index[maps.index >= 0]] = True
+        visible = np.flatnonzero(seen)
+        surfels = SurfelSet(*(np.take(a, visible, axis=0) for a in (m.ref_position, m.ref_normal, m.knn, m.weights)))
         field, nonrigid = self.tracker.nonrigid(self.field, surfels, obs)
         self.field = self.tracker.factor(field, nonrigid)
         timer.lap("nonrigid")
@@ -165,12 +167,13 @@ class SurfelWarpMethod:
         timer.lap("remove")
 
         # Sec. IV: the fused live surfels back to the reference frame (Eq. 3).
-        ref, m.ref_normal[fused] = inverse_warp(
-            m.live_position[fused], m.live_normal[fused], m.knn[fused], m.weights[fused], self.field)
+        fused = np.flatnonzero(fused)
+        ref, ref_normal = inverse_warp(*(np.take(a, fused, axis=0) for a in (m.live_position, m.live_normal, m.knn,
+                                                                              m.weights)), self.field)
         if p.fusion.reference_along_normal:
-            old, n = m.ref_position[fused], m.ref_normal[fused]
-            ref = old + np.einsum("ij,ij->i", ref - old, n)[:, None] * n
-        m.ref_position[fused] = ref
+            old = np.take(m.ref_position, fused, axis=0)
+            ref = old + np.einsum("ij,ij->i", ref - old, ref_normal)[:, None] * ref_normal
+        m.ref_position[fused], m.ref_normal[fused] = ref, ref_normal
         timer.lap("inverse_warp")
 
         # VI-D: nodes for the appended surfels no node covers; the graph is rebuilt, and every

@@ -30,7 +30,10 @@ class SurfelModel:
 
     def select(self, which: np.ndarray) -> "SurfelModel":
         """The surfels picked by a boolean mask or an index array, in that order."""
-        return SurfelModel(**{f.name: getattr(self, f.name)[which] for f in fields(self)})
+        which = np.asarray(which)
+        rows = np.flatnonzero(which) if which.dtype == bool else which
+        # np.take of rows is several times faster than boolean indexing of (N, c) arrays.
+        return SurfelModel(**{f.name: np.take(getattr(self, f.name), rows, axis=0) for f in fields(self)})
 
     def concatenate(self, other: "SurfelModel") -> "SurfelModel":
         return SurfelModel(**{f.name: np.concatenate([getattr(self, f.name), getattr(other, f.name)])

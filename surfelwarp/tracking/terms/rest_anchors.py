@@ -103,10 +103,11 @@ class RestAnchorTerm(BaseTerm):
         # Nodes held out of the solve do not see the depth: they neither release nor pull on
         # the common motion (they follow it at the end).
         solved = replace(anchor, mu=anchor.mu * system.free)
-        support = np.bincount(self.knn[idx].ravel(), self.weights[idx].ravel(), minlength=field.num_nodes)
+        knn, weights = np.take(self.knn, idx, axis=0), np.take(self.weights, idx, axis=0)
+        support = np.bincount(knn.ravel(), weights.ravel(), minlength=field.num_nodes)
         u = anchor.release_unseen_weight
         seen = None if u >= 1 else (1 - u) * seen_directions(
-            field.num_nodes, self.knn[idx], self.weights[idx], at.pairs.normals) + u * np.eye(3)
+            field.num_nodes, knn, weights, at.pairs.normals) + u * np.eye(3)
         released, G, fell_back = release(field, system, solved, support, seen, self.solver)
         self.lu_fallbacks += fell_back
         self.released, self.G = released, G
