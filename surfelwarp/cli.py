@@ -147,7 +147,6 @@ def cmd_run(args: argparse.Namespace) -> int:
 def compare_spec(args: argparse.Namespace):
     """The comparison's CompareSpec from its flags."""
     from surfelwarp.methods.dynamicfusion.params import DynamicFusionParams
-    from surfelwarp.report.runner import CompareSpec
 
     df = DynamicFusionParams()
     if args.hierarchical:
@@ -161,10 +160,16 @@ def compare_spec(args: argparse.Namespace):
     if args.graph_k is not None:
         df = replace(df, warp_field=replace(df.warp_field, graph_k=args.graph_k))
         sw_field = df.warp_field
+    return _input_spec(args, dynamicfusion=df, surfelwarp_warp_field=sw_field)
+
+
+def _input_spec(args: argparse.Namespace, **methods):
+    """The CompareSpec of the shared input flags (_add_input_arguments), plus `methods`' fields."""
+    from surfelwarp.report.runner import CompareSpec
     return CompareSpec(input=args.input, out=args.out, intrinsics=_intrinsics(args), depth_scale=args.depth_scale,
                        start=args.start, max_frames=args.max_frames, save_every=args.save_every,
-                       preprocess=_preprocess_params(args), dynamicfusion=df, surfelwarp_warp_field=sw_field,
-                       surfelwarp_fusion=not args.no_fusion, progress=False if args.no_progress else None)
+                       preprocess=_preprocess_params(args), surfelwarp_fusion=not args.no_fusion,
+                       progress=False if args.no_progress else None, **methods)
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
@@ -176,15 +181,10 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from surfelwarp.report.bench import bench
-    from surfelwarp.report.runner import CompareSpec
 
     if args.out is not None and args.out.exists() and not args.out.is_dir():
         raise InputError(args.out, "output path exists and is not a folder")
-    spec = CompareSpec(input=args.input, out=args.out, intrinsics=_intrinsics(args), depth_scale=args.depth_scale,
-                       start=args.start, max_frames=args.max_frames, save_every=args.save_every,
-                       preprocess=_preprocess_params(args), surfelwarp_fusion=not args.no_fusion,
-                       progress=False if args.no_progress else None)
-    print(bench(spec, args.compare_with, args.open3d))
+    print(bench(_input_spec(args), args.compare_with, args.open3d))
     return 0
 
 
