@@ -1,4 +1,4 @@
-"""Renders camera-frame triangle meshes into linear depth and normal maps with moderngl.
+"""Renders camera-frame triangle meshes into linear depth, normal and material maps with moderngl.
 
 Projection is the OpenCV pinhole of surfelwarp.camera (pixel (0, 0) = centre of the
 top-left pixel), one sample at each pixel centre, so a planar triangle's depth is exact.
@@ -15,7 +15,8 @@ from .meshes import vertex_normals
 
 
 class MeshRenderer:
-    """Depth (metres, 0 = nothing) and camera-facing unit normals of a mesh, per pixel."""
+    """Depth (metres, 0 = nothing), camera-facing unit normals and the material point seen
+    (the vertices' rest positions interpolated; for the texture) of a mesh, per pixel."""
 
     def __init__(self, intrinsics: Intrinsics, near_m: float = 0.05, far_m: float = 20.0):
         import moderngl
@@ -25,8 +26,9 @@ class MeshRenderer:
         self.program = load_program(ctx, vertex="synth_depth.vert.glsl", fragment="synth_depth.frag.glsl")
         size = (intrinsics.width, intrinsics.height)
         self.target = ctx.texture(size, 4, dtype="f4")
+        self.material = ctx.texture(size, 4, dtype="f4")
         self.depth = ctx.depth_renderbuffer(size)
-        self.fbo = ctx.framebuffer(color_attachments=[self.target], depth_attachment=self.depth)
+        self.fbo = ctx.framebuffer(color_attachments=[self.target, self.material], depth_attachment=self.depth)
         self.program["intrinsics"].value = (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy)
         self.program["size"].value = size
         self.program["clip_range"].value = (near_m, far_m)
@@ -41,31 +43,40 @@ class MeshRenderer:
         for obj in (self._vao, self._vbo, self._ibo):
             if obj is not None:
                 obj.release()
-        self._vbo = self.ctx.buffer(reserve=n_vertices * 24)
+        self._vbo = self.ctx.buffer(reserve=n_vertices * 36)
         self._ibo = self.ctx.buffer(np.ascontiguousarray(faces, dtype="u4").tobytes())
-        self._vao = self.ctx.vertex_array(self.program, [(self._vbo, "3f 3f", "in_position", "in_normal")],
+        self._vao = self.ctx.vertex_array(self.program, [(self._vbo, "3f 3f 3f", "in_position", "in_normal",
+                                                          "in_material")],
                                           index_buffer=self._ibo, index_element_size=4)
         self._faces_key, self._faces = key, faces
 
     def render(self, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray]:
         """(H, W) float32 depth and (H, W, 3) float32 normals of camera-frame `vertices`."""
+        depth, normal, _ = self.render_maps(vertices, faces, vertices, normals)
+        return depth, normal
+
+    def render_maps(self, vertices: np.ndarray, faces: np.ndarray, material: np.ndarray,
+                    normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Depth, normals and (H, W, 3) float32 material points (per-vertex `material`
+        interpolated; 0 where nothing is drawn) of camera-frame `vertices`."""
         if normals is None:
             normals = vertex_normals(vertices, faces)
         self._bind(len(vertices), faces)
-        self._vbo.write(np.hstack([vertices, normals]).astype("f4").tobytes())
+        self._vbo.write(np.hstack([vertices, normals, material]).astype("f4").tobytes())
         self.fbo.use()
         self.ctx.viewport = (0, 0, self.intrinsics.width, self.intrinsics.height)
         self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         self.ctx.enable(self._moderngl.DEPTH_TEST)
         self.ctx.disable(self._moderngl.CULL_FACE)
         self._vao.render(self._moderngl.TRIANGLES)
-        data = np.frombuffer(self.fbo.read(components=4, dtype="f4"), dtype=np.float32)
-        data = data.reshape(self.intrinsics.height, self.intrinsics.width, 4)
-        return data[..., 0].copy(), data[..., 1:].copy()
+        shape = (self.intrinsics.height, self.intrinsics.width, 4)
+        data = np.frombuffer(self.fbo.read(components=4, dtype="f4", attachment=0), dtype=np.float32).reshape(shape)
+        mat = np.frombuffer(self.fbo.read(components=4, dtype="f4", attachment=1), dtype=np.float32).reshape(shape)
+        return data[..., 0].copy(), data[..., 1:].copy(), mat[..., :3].copy()
 
     def release(self) -> None:
-        for obj in (self._vao, self._vbo, self._ibo, self.fbo, self.target, self.depth):
+        for obj in (self._vao, self._vbo, self._ibo, self.fbo, self.target, self.material, self.depth):
             if obj is not None:
                 obj.release()
         self._vao = self._vbo = self._ibo = None

@@ -11,42 +11,13 @@ as flesh does (Scene.max_strain).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
-from . import meshes
+from . import meshes, tangential
+from .animation import SPACING_M, Animation, Scene, look_at, smoothstep, static_camera
 from .meshes import rotation
-
-SPACING_M = 0.005     # vertex spacing of curved surfaces; flat walls are exact with large triangles
-
-
-@dataclass(frozen=True)
-class Animation:
-    faces: np.ndarray                         # (F, 3) int32
-    part: np.ndarray                          # (V,) int16, which rigid/deforming piece
-    moving: np.ndarray                        # (V,) bool, True where the vertex moves in the scene
-    positions: Callable[[int], np.ndarray]    # frame -> (V, 3) scene-frame vertices
-    camera: Callable[[int], np.ndarray]       # frame -> 4x4 camera-to-scene
-
-
-@dataclass(frozen=True)
-class Scene:
-    name: str
-    description: str
-    default_frames: int
-    build: Callable[[], Animation]
-    max_strain: float = 0.035     # largest edge strain of the motion (0.035: near isometric)
-
-
-def _static_camera(_: int) -> np.ndarray:
-    return np.eye(4)
-
-
-def smoothstep(t):
-    t = np.clip(t, 0.0, 1.0)
-    return t * t * (3 - 2 * t)
 
 
 def sheet() -> Animation:
@@ -73,7 +44,7 @@ def sheet() -> Animation:
         return np.stack([x, r, z], -1) @ yaw.T + pole
 
     n = len(rest)
-    return Animation(faces, np.zeros(n, np.int16), np.ones(n, bool), positions, _static_camera)
+    return Animation(faces, np.zeros(n, np.int16), np.ones(n, bool), positions, static_camera)
 
 
 def tube_wall() -> Animation:
@@ -105,7 +76,7 @@ def tube_wall() -> Animation:
         out[is_tube] = local @ (swing @ lean).T + base
         return out
 
-    return Animation(faces, part, is_tube, positions, _static_camera)
+    return Animation(faces, part, is_tube, positions, static_camera)
 
 
 def twist() -> Animation:
@@ -128,7 +99,7 @@ def twist() -> Animation:
         return local @ place.T + centre
 
     n = len(rest)
-    return Animation(faces, np.zeros(n, np.int16), np.ones(n, bool), positions, _static_camera)
+    return Animation(faces, np.zeros(n, np.int16), np.ones(n, bool), positions, static_camera)
 
 
 def _fingers(opening: Callable[[int], float]) -> Animation:
@@ -150,7 +121,7 @@ def _fingers(opening: Callable[[int], float]) -> Animation:
         wobble = rotation("x", 0.12 * np.sin(2 * np.pi * i / 75))
         return out @ (place @ wobble).T + base
 
-    return Animation(faces, part, np.ones(len(vertices), bool), positions, _static_camera)
+    return Animation(faces, part, np.ones(len(vertices), bool), positions, static_camera)
 
 
 def _open_fraction(x: float) -> float:
@@ -180,7 +151,7 @@ def fast() -> Animation:
         return rest @ R.T + centre
 
     n = len(rest)
-    return Animation(faces, np.zeros(n, np.int16), np.ones(n, bool), positions, _static_camera)
+    return Animation(faces, np.zeros(n, np.int16), np.ones(n, bool), positions, static_camera)
 
 
 def orbit() -> Animation:
@@ -249,7 +220,7 @@ def limb_wall() -> Animation:
         out[is_limb] = local @ lean.T + base
         return out
 
-    return Animation(faces, part, is_limb, positions, _static_camera)
+    return Animation(faces, part, is_limb, positions, static_camera)
 
 
 def free_sheet() -> Animation:
@@ -275,17 +246,7 @@ def free_sheet() -> Animation:
         return local @ turn.T + [0.02 * np.sin(2 * np.pi * i / 100), 0.0, 0.85]
 
     n = len(rest)
-    return Animation(faces, np.zeros(n, np.int16), np.ones(n, bool), positions, _static_camera)
-
-
-def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """4x4 camera-to-scene of a camera at `eye` looking at `target`, image up along `up`."""
-    z = (target - eye) / np.linalg.norm(target - eye)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = np.stack([x, np.cross(z, x), z], -1), eye
-    return T
+    return Animation(faces, np.zeros(n, np.int16), np.ones(n, bool), positions, static_camera)
 
 
 def _segment(mesh: np.ndarray, start: np.ndarray, end: np.ndarray, side: np.ndarray) -> np.ndarray:
@@ -364,7 +325,7 @@ def table() -> Animation:
             out[part == first + 2] = vertices[part == first + 2] + hand_at
         return out
 
-    camera = _look_at(np.array([0.0, -0.35, 1.2]), np.array([0.0, 0.35, 0.1]), np.array([0.0, 0.0, 1.0]))
+    camera = look_at(np.array([0.0, -0.35, 1.2]), np.array([0.0, 0.35, 0.1]), np.array([0.0, 0.0, 1.0]))
     return Animation(faces, part, ~static, positions, lambda _: camera)
 
 
@@ -380,4 +341,8 @@ SCENES = {s.name: s for s in (
           limb_wall, max_strain=0.23),
     Scene("free-sheet", "a free sheet (no still edge) turning slowly, waves travelling across it", 40, free_sheet),
     Scene("table", "a person at a table moving both arms over it (touching it), still camera overhead", 90, table),
+    Scene("twist-limb", "a smooth limb (8 cm thick) before a wall turning about its own axis and sliding along it "
+          "(tangential motion: colour only)", 60, tangential.twist_limb),
+    Scene("roll", "a smooth textured ball rolling to and fro on a table top (its turn is tangential motion)", 60,
+          tangential.roll),
 )}

@@ -3,6 +3,9 @@
 Output folder (VolumeDeform layout, loads with surfelwarp.sequence.open_sequence):
 
     frame-%06d.depth.png   16-bit depth in millimetres, 0 = no measurement
+    frame-%06d.color.png   8-bit RGB registered to the depth (same camera): a texture bound to
+                           the material, Lambertian shading from a lamp beside the camera
+                           (data_tools.texture)
     depthIntrinsics.txt    4x4 camera matrix (fx fy cx cy)
     groundtruth.npz        numpy archive:
         vertices         (F, V, 3) float32  the mesh of every frame in that frame's camera
@@ -20,7 +23,8 @@ Output folder (VolumeDeform layout, loads with surfelwarp.sequence.open_sequence
 
 Camera: fx = fy = 550 * width / 640 (the same field of view at any size), cx, cy at the
 image centre ((W-1)/2, (H-1)/2 with pixel (0, 0) = top-left pixel centre).
-Noise: `kinect` (see data_tools.noise) or `none` (clean depth rounded to millimetres).
+Noise: `kinect` (see data_tools.noise; colour gets Gaussian 8-bit noise) or `none` (clean depth
+rounded to millimetres, colour without noise).
 Per-frame random numbers come from numpy's generator seeded with (seed, frame).
 """
 from __future__ import annotations
@@ -42,6 +46,7 @@ from .meshes import edges, vertex_normals
 from .noise import kinect_noise
 from .render import MeshRenderer, incidence_cosine
 from .scenes import SCENES
+from .texture import shade
 
 DEPTH_SCALE = 1000.0
 NOISE_MODELS = ("kinect", "none")
@@ -120,7 +125,7 @@ def _prepare_out(out: Path) -> None:
     old = sorted(out.glob("frame-*.depth.png"))
     if old and not (out / "groundtruth.npz").exists():
         raise InputError(out, "folder already holds depth frames that synth did not write; choose another --out")
-    for path in old:        # a previous synth run: its frames would mix with the new ones
+    for path in old + sorted(out.glob("frame-*.color.png")):   # a previous synth run's frames
         path.unlink()
 
 
@@ -139,6 +144,7 @@ def generate(scene: str, out_dir, frames: int | None = None, size=(640, 480), no
     _prepare_out(out)
     intr = default_intrinsics((w, h))
     vertices, camera_to_world, anim = scene_frames(scene, frames)
+    material = anim.positions(0)               # the texture is painted on the first frame's shape
     renderer = MeshRenderer(intr)
     bar = None
     if progress:
@@ -147,11 +153,13 @@ def generate(scene: str, out_dir, frames: int | None = None, size=(640, 480), no
     try:
         for i in range(frames):
             normals = vertex_normals(vertices[i], anim.faces)
-            depth, normal_map = renderer.render(vertices[i], anim.faces, normals)
-            if noise == "kinect":
-                rng = np.random.default_rng([seed, i])
+            depth, normal_map, material_map = renderer.render_maps(vertices[i], anim.faces, material, normals)
+            rng = np.random.default_rng([seed, i]) if noise == "kinect" else None
+            color = shade(depth, normal_map, material_map, rng)
+            if rng is not None:
                 depth = kinect_noise(depth, incidence_cosine(normal_map, intr), intr, rng)
             cv2.imwrite(str(out / f"frame-{i:06d}.depth.png"), depth_to_png(depth))
+            cv2.imwrite(str(out / f"frame-{i:06d}.color.png"), color[..., ::-1])
             if bar is not None:
                 bar.update()
     finally:

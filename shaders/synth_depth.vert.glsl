@@ -8,8 +8,10 @@ uniform vec2 clip_range;   // near, far in metres
 
 in vec3 in_position;
 in vec3 in_normal;
+in vec3 in_material;    // the vertex's material point (rest position): the texture moves with it
 out vec3 v_position;
 out vec3 v_normal;
+out vec3 v_material;
 
 void main() {
     float z = in_position.z;
@@ -20,4 +22,5 @@ void main() {
     gl_Position = vec4(x_clip, y_clip, z_clip, z);
     v_position = in_position;
     v_normal = in_normal;
+    v_material = in_material;
 }

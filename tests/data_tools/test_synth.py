@@ -192,3 +192,39 @@ def test_cli_functions(tmp_path, capsys):
     args = parser.parse_args(["twist", "--out", str(tmp_path / "t"), "--frames", "2", "--size", "32x24",
                               "--noise", "none", "--no-progress"])
     assert synth.run(args) == 0 and len(list((tmp_path / "t").glob("frame-*.depth.png"))) == 2
+
+
+def test_texture_moves_with_the_material(small):
+    """A plane slid along itself by a whole number of pixels shows the same colours shifted:
+    the texture is painted on the material, and the shading (same normal) does not change."""
+    from surfelwarp.data_tools.texture import shade
+
+    v, f = meshes.plane(4.0, 4.0, 0.5)
+    verts = v + [0.0, 0.0, 1.0]
+    renderer = MeshRenderer(small)
+    slide = 10 / small.fx                              # 10 pixels at 1 m
+    images = []
+    for dx in (0.0, slide):
+        depth, normal, material = renderer.render_maps(verts + [dx, 0.0, 0.0], f, verts)
+        images.append(shade(depth, normal, material, None).astype(int))
+    a, b = images
+    assert np.abs(b[:, 10:] - a[:, :-10]).max() <= 2
+    assert np.abs(b - a).mean() > 10                   # the texture does vary: the check can fail
+    depth, _, _ = renderer.render_maps(verts + [5.0, 0.0, 0.0], f, verts)   # out of view
+    blank = shade(depth, np.zeros(depth.shape + (3,)), np.zeros(depth.shape + (3,)), None)
+    assert (blank == np.rint(255 * np.array(texture_background()))).all()
+
+
+def texture_background():
+    from surfelwarp.data_tools.texture import BACKGROUND_RGB
+    return BACKGROUND_RGB
+
+
+def test_synth_writes_registered_colour(tmp_path):
+    out = synth.generate("roll", tmp_path / "roll", frames=2, size=(160, 120), noise="none")
+    color = cv2.imread(str(out / "frame-000001.color.png"), cv2.IMREAD_UNCHANGED)
+    depth = cv2.imread(str(out / "frame-000001.depth.png"), cv2.IMREAD_UNCHANGED)
+    assert color.dtype == np.uint8 and color.shape == (120, 160, 3)
+    # the ball and table are textured, the space behind them the plain background (BGR on disk)
+    drawn = depth > 0
+    assert color[drawn].std() > 20 and (color[~drawn] == [69, 64, 64]).all()
