@@ -38,17 +38,22 @@ class CameraObservation:
     valid: np.ndarray              # bool: depth, vertex and normal all usable
     beyond: np.ndarray | None = None   # bool: measured farther than the far clip (free space
                                        # in front of it, though its depth is dropped)
+    color: np.ndarray | None = None    # (H, W, 3) uint8 RGB registered to depth; None without colour
 
     @property
     def num_valid(self) -> int:
         return int(self.valid.sum())
 
     def surfels(self) -> dict[str, np.ndarray]:
-        """The valid depth surfels as flat arrays, with their pixel (row, col)."""
+        """The valid depth surfels as flat arrays, with their pixel (row, col) and, with colour,
+        their float32 RGB ("color")."""
         rows, cols = np.nonzero(self.valid)
-        return {"position": self.vertex_map[rows, cols], "normal": self.normal_map[rows, cols],
-                "confidence": self.confidence_map[rows, cols], "radius": self.radius_map[rows, cols],
-                "pixel": np.stack([rows, cols], axis=1)}
+        out = {"position": self.vertex_map[rows, cols], "normal": self.normal_map[rows, cols],
+               "confidence": self.confidence_map[rows, cols], "radius": self.radius_map[rows, cols],
+               "pixel": np.stack([rows, cols], axis=1)}
+        if self.color is not None:
+            out["color"] = self.color[rows, cols].astype(np.float32)
+        return out
 
 
 def clip_and_crop(depth_m: np.ndarray, params: PreprocessParams) -> np.ndarray:
@@ -144,7 +149,10 @@ def radius_map(depth_m: np.ndarray, normals: np.ndarray, intrinsics: Intrinsics,
 
 
 def preprocess(depth_m: np.ndarray, intrinsics: Intrinsics, frame_index: int, time: int,
-               params: PreprocessParams = PreprocessParams()) -> CameraObservation:
+               params: PreprocessParams = PreprocessParams(), color: np.ndarray | None = None) -> CameraObservation:
+    """`color`: the frame's (H, W, 3) uint8 RGB registered to depth_m, passed through as is."""
+    if color is not None and np.shape(color) != np.shape(depth_m) + (3,):
+        raise ValueError(f"colour {np.shape(color)} does not match depth {np.shape(depth_m)}")
     raw = clip_and_crop(depth_m, params)
     depth = bilateral_filter(raw, params)
     vertices = intrinsics.backproject(depth)
@@ -152,4 +160,4 @@ def preprocess(depth_m: np.ndarray, intrinsics: Intrinsics, frame_index: int, ti
     confidence = np.where(valid, confidence_map(intrinsics, params.confidence_phi), 0.0).astype(np.float32)
     radius = np.where(valid, radius_map(depth, normals, intrinsics, params.max_view_angle_deg), 0.0)
     return CameraObservation(frame_index, time, intrinsics, raw, depth, vertices, normals,
-                             confidence, radius.astype(np.float32), valid, depth_m > params.clip_far_m)
+                             confidence, radius.astype(np.float32), valid, depth_m > params.clip_far_m, color)

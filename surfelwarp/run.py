@@ -1,6 +1,7 @@
 """The frame loop shared by every method: read, preprocess, process, save."""
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -16,7 +17,8 @@ from surfelwarp.preprocess import PreprocessParams, preprocess
 
 def input_config(seq: Sequence, start: int, max_frames: int | None) -> dict:
     """How the input was read, for metrics.json."""
-    return {"layout": seq.layout, "depth_scale": seq.depth_scale, "start": start, "max_frames": max_frames,
+    return {"layout": seq.layout, "color": seq.has_color, "depth_scale": seq.depth_scale, "start": start,
+            "max_frames": max_frames,
             "intrinsics": {k: getattr(seq.intrinsics, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}}
 
 
@@ -28,6 +30,8 @@ def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: in
     On bad input mid-run, metrics.json is written for the frames done so far (with an "error"
     field) and the InputError propagates.
     """
+    for note in seq.notes:      # once per run, before the progress bar
+        print(f"surfelwarp: note: {note}", file=sys.stderr)
     config = {"input": input_config or {}, "preprocess": asdict(preprocess_params),
               "method": method.config(), "save_every": save_every}
     outputs = RunOutputs(out_dir, method.name, seq.root, config)
@@ -38,8 +42,9 @@ def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: in
         for i in range(len(seq)):
             t0 = time.perf_counter()
             files, depth = next(frames)
+            color = seq.read_color(files)
             t1 = time.perf_counter()
-            obs = preprocess(depth, seq.intrinsics, files.index, i, preprocess_params)
+            obs = preprocess(depth, seq.intrinsics, files.index, i, preprocess_params, color)
             t2 = time.perf_counter()
             record = method.process(obs)
             t3 = time.perf_counter()

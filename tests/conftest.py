@@ -48,14 +48,33 @@ LAYOUT_FILES = {
 }
 
 
+COLOR_FILES = {"volumedeform": "frame-{:06d}.color.png", "7scenes": "frame-{:06d}.color.jpg",
+               "deepdeform": "color/{:06d}.jpg", "killingfusion": "color_{:06d}.png"}
+
+SPHERE_RGB, WALL_RGB = (200, 40, 40), (40, 90, 200)
+
+
+def two_colours(frame: int, size=(64, 48)) -> np.ndarray:
+    """(H, W, 3) uint8 RGB registered to sphere_depth_mm: the sphere SPHERE_RGB, the wall WALL_RGB."""
+    sphere = sphere_depth_mm(frame, size) < 1450
+    return np.where(sphere[..., None], np.uint8(SPHERE_RGB), np.uint8(WALL_RGB)).astype(np.uint8)
+
+
 def write_sequence(root: Path, layout: str = "volumedeform", frames=range(3), size=(64, 48),
-                   four_by_four: bool = False) -> Path:
+                   four_by_four: bool = False, color=None) -> Path:
+    """color: frame index -> (h, w, 3) uint8 RGB image (any size), written as the layout's colour
+    file (BGR on disk, as cv2 and the datasets store it); None: no colour files."""
     depth_name, intrinsics_name = LAYOUT_FILES[layout]
     root.mkdir(parents=True, exist_ok=True)
     for i in frames:
         path = root / depth_name.format(i)
         path.parent.mkdir(exist_ok=True)
         cv2.imwrite(str(path), sphere_depth_mm(i, size))
+        if color is not None:
+            path = root / COLOR_FILES[layout].format(i)
+            path.parent.mkdir(exist_ok=True)
+            quality = [cv2.IMWRITE_JPEG_QUALITY, 100] if path.suffix == ".jpg" else []
+            cv2.imwrite(str(path), np.ascontiguousarray(color(i)[..., ::-1]), quality)
     K = np.array([[60.0, 0, size[0] / 2], [0, 60.0, size[1] / 2], [0, 0, 1]])
     if four_by_four:
         K4 = np.eye(4)

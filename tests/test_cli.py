@@ -9,7 +9,7 @@ import pytest
 
 from surfelwarp.io.ply import read_ply
 
-from conftest import write_sequence
+from conftest import SPHERE_RGB, WALL_RGB, two_colours, write_sequence
 
 
 def run_cli(*args):
@@ -143,3 +143,44 @@ def test_rerun_into_the_same_folder_leaves_only_its_own_frames(tmp_path):
     assert sorted(p.name for p in (out / "live").iterdir()) == ["frame-000000.ply", "frame-000002.ply", "notes.txt"]
     metrics = json.loads((out / "metrics.json").read_text())
     assert [f["frame"] for f in metrics["frames"]] == [0, 1, 2]
+
+
+def test_colour_frame_damaged_mid_run_is_one_clear_error(tmp_path):
+    seq = write_sequence(tmp_path / "seq", frames=range(4), color=two_colours)
+    frame = seq / "frame-000002.color.png"
+    data = frame.read_bytes()
+    frame.write_bytes(data[:40] + b"\0" * (len(data) - 40))   # header intact, pixels damaged
+    out = tmp_path / "out"
+    code, _, err = run_cli("run", seq, "--out", out, "--method", "observe", "--save-every", 1)
+    assert_clean_error(code, err, "frame-000002.color.png", "cannot decode colour frame")
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert [f["frame"] for f in metrics["frames"]] == [0, 1] and "frame-000002.color.png" in metrics["error"]
+
+
+def test_unreadable_colour_file_is_named_before_anything_is_written(tmp_path):
+    seq = write_sequence(tmp_path / "seq", frames=range(3), color=two_colours)
+    (seq / "frame-000001.color.png").write_text("hello")
+    out = tmp_path / "out"
+    code, _, err = run_cli("run", seq, "--out", out)
+    assert_clean_error(code, err, "frame-000001.color.png", "not a PNG")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("method", ["surfelwarp", "dynamicfusion"])
+def test_coloured_run_goes_on_past_a_frame_without_colour(tmp_path, method):
+    seq = write_sequence(tmp_path / "seq", frames=range(3), color=two_colours)
+    (seq / "frame-000001.color.png").unlink()
+    config = tmp_path / "coarse.json"      # 2 cm voxels: the 64x48 frames' pixels are 2.5 cm on the wall
+    config.write_text('{"tsdf": {"voxel_size_m": 0.02, "truncation_m": 0.06}}')
+    out = tmp_path / "out"
+    code, _, err = run_cli("run", seq, "--out", out, "--method", method, "--no-progress",
+                           *(["--config", config] if method == "dynamicfusion" else []))
+    assert code == 0, err
+    assert err.count("surfelwarp: note:") == 1 and "1 of 3 frames have no colour frame" in err, err
+    assert json.loads((out / "metrics.json").read_text())["config"]["input"]["color"] is True
+    for path in (out / "live" / "frame-000002.ply", out / "model.ply"):
+        table, _ = read_ply(path)
+        assert table.dtype.names[-3:] == ("red", "green", "blue")
+        rgb = np.stack([table["red"], table["green"], table["blue"]], 1).astype(int)
+        for part, painted in ((table["z"] < 1.35, SPHERE_RGB), (table["z"] > 1.45, WALL_RGB)):
+            assert part.sum() > 300 and np.mean(np.abs(rgb[part] - painted).max(1) <= 2) > 0.99

@@ -13,17 +13,20 @@ _NUMPY_TYPES = {v: k for k, v in _PLY_TYPES.items()} | {"float32": "f4", "uint32
 
 VERTEX_FIELDS = ("x", "y", "z", "nx", "ny", "nz", "ref_x", "ref_y", "ref_z")
 SURFEL_FIELDS = ("radius", "confidence")
+COLOR_FIELDS = ("red", "green", "blue")
 
 
-def vertex_table(position, normal, ref_position, radius=None, confidence=None, ids=None) -> np.ndarray:
+def vertex_table(position, normal, ref_position, radius=None, confidence=None, ids=None, color=None) -> np.ndarray:
     """The contract's vertex record: float32 x y z nx ny nz ref_x ref_y ref_z
-    [radius confidence] [uint32 id]."""
+    [radius confidence] [uint32 id] [uchar red green blue]; `color` (N, 3) RGB, 0..255."""
     n = len(position)
     fields = [(name, "<f4") for name in VERTEX_FIELDS]
     if radius is not None:
         fields += [(name, "<f4") for name in SURFEL_FIELDS]
     if ids is not None:
         fields.append(("id", "<u4"))
+    if color is not None:
+        fields += [(name, "u1") for name in COLOR_FIELDS]
     table = np.empty(n, dtype=fields)
     for i, name in enumerate("xyz"):
         table[name] = position[:, i]
@@ -33,6 +36,10 @@ def vertex_table(position, normal, ref_position, radius=None, confidence=None, i
         table["radius"], table["confidence"] = radius, confidence
     if ids is not None:
         table["id"] = ids
+    if color is not None:
+        rgb = np.clip(np.rint(color), 0, 255).astype(np.uint8)
+        for i, name in enumerate(COLOR_FIELDS):
+            table[name] = rgb[:, i]
     return table
 
 

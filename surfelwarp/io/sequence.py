@@ -3,6 +3,9 @@
 The four layouts of CONTRACT.md are recognised by their file names. Every frame's
 PNG header is checked when the sequence is opened, so a bad frame is reported
 before any output is written; pixels are only decoded when a frame is read.
+Colour is used only where the layout registers it to the depth image and its size maps onto
+the depth's; plan_color decides that once, when the sequence is opened, and checks the colour
+headers the same way.
 """
 from __future__ import annotations
 
@@ -34,15 +37,18 @@ class Layout:
     depth_pattern: re.Pattern       # matched against paths relative to the sequence folder
     intrinsics_glob: str
     sibling: dict                   # kind -> format string of the frame index, relative path
+    # The colour pixel (u, v) sees what the depth pixel (u, v) does. 7-Scenes and KillingFusion
+    # ship raw colour from a camera beside the depth sensor, which would need its extrinsics.
+    color_registered: bool = False
 
 
 LAYOUTS = (
     Layout("volumedeform", re.compile(r"frame-(\d+)\.depth\.png"), "depthIntrinsics.txt",
-           {"color": "frame-{:06d}.color.png"}),
+           {"color": "frame-{:06d}.color.png"}, color_registered=True),
     Layout("7scenes", re.compile(r"frame-(\d+)\.depth\.png"), "camera-intrinsics.txt",
            {"color": "frame-{:06d}.color.jpg", "pose": "frame-{:06d}.pose.txt"}),
     Layout("deepdeform", re.compile(r"depth/(\d+)\.png"), "intrinsics.txt",
-           {"color": "color/{:06d}.jpg"}),
+           {"color": "color/{:06d}.jpg"}, color_registered=True),
     Layout("killingfusion", re.compile(r"depth_(\d+)\.png"), "intrinsics*.txt",
            {"color": "color_{:06d}.png", "mask": "omask_{:06d}.png"}),
 )
@@ -88,26 +94,86 @@ def png_header(path: Path) -> tuple[int, int, int, int]:
     return width, height, bit_depth, colour_type
 
 
+_PNG_KINDS = {0: "grayscale", 2: "RGB", 3: "palette", 4: "grayscale+alpha", 6: "RGBA"}
+
+
 def _check_depth_header(path: Path, size: tuple[int, int] | None) -> tuple[int, int]:
     width, height, bit_depth, colour_type = png_header(path)
     if bit_depth != 16 or colour_type != 0:
-        kind = {0: "grayscale", 2: "RGB", 3: "palette", 4: "grayscale+alpha", 6: "RGBA"}.get(colour_type, "unknown")
+        kind = _PNG_KINDS.get(colour_type, "unknown")
         raise InputError(path, f"depth PNG must be 16-bit single-channel, found {bit_depth}-bit {kind}")
     if size is not None and (width, height) != size:
         raise InputError(path, f"frame is {width}x{height}, but the first frame is {size[0]}x{size[1]}")
     return width, height
 
 
+def color_header(path: Path) -> tuple[int, int]:
+    """(width, height) of a colour frame from its header, which must say 8-bit, 3 or 4 channels."""
+    if path.suffix.lower() == ".png":
+        width, height, bit_depth, colour_type = png_header(path)
+        if bit_depth != 8 or colour_type not in (2, 6):
+            kind = _PNG_KINDS.get(colour_type, "unknown")
+            raise InputError(path, f"colour PNG must be 8-bit RGB or RGBA, found {bit_depth}-bit {kind}")
+        return width, height
+    from PIL import Image   # opening reads the header only; the pixels stay undecoded
+    try:
+        with Image.open(path) as image:
+            mode, size = image.mode, image.size
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise InputError(path, f"cannot read colour frame ({exc.__class__.__name__})") from None
+    if mode != "RGB":
+        raise InputError(path, f"colour frame must be 8-bit with 3 channels, found mode {mode}")
+    return size
+
+
+def plan_color(layout: Layout, files: list[FrameFiles], depth_size: tuple[int, int],
+               root: Path) -> tuple[tuple[int, int] | None, tuple[str, ...]]:
+    """The colour frames' (width, height) if colour is used (None: it is not), and the notes the
+    run prints about it. Every used colour frame's header is checked, like the depth's."""
+    have = [f for f in files if f.color is not None]
+    if not have:
+        return None, ()
+    if not layout.color_registered:
+        return None, (f"{layout.name} colour frames are not registered to the depth image: colour is not used",)
+    size = color_header(have[0].color)
+    (w, h), (W, H) = size, depth_size
+    notes = []
+    if size != depth_size:
+        # Scaled to the depth's height, the colour's width must be within half a pixel of the
+        # depth's: else no resize lines the two up everywhere.
+        if abs(w * H / h - W) > 0.5:
+            return None, (f"colour frames are {w}x{h} and depth {W}x{H}, another aspect ratio: colour is not used",)
+        notes.append(f"colour frames are {w}x{h} and depth {W}x{H}: colour is resized to the depth size")
+    for f in have[1:]:
+        other = color_header(f.color)
+        if other != size:
+            raise InputError(f.color, f"colour frame is {other[0]}x{other[1]}, but the first colour frame "
+                                      f"is {w}x{h}")
+    missing = [f for f in files if f.color is None]
+    if missing:
+        first = root / layout.sibling["color"].format(missing[0].index)
+        notes.append(f"{len(missing)} of {len(files)} frames have no colour frame (first: {first}); "
+                     "they run without colour")
+    return size, tuple(notes)
+
+
 class Sequence:
-    """An opened depth sequence; frames are decoded one at a time by `frames()`."""
+    """An opened depth sequence; frames are decoded one at a time by `frames()` (depth) and
+    `read_color`. `notes` are what the run says once about the input (colour not used, ...)."""
 
     def __init__(self, root: Path, layout: str, intrinsics: Intrinsics, files: list[FrameFiles],
-                 depth_scale: float):
+                 depth_scale: float, color_size: tuple[int, int] | None = None, notes: tuple[str, ...] = ()):
         self.root, self.layout, self.intrinsics = root, layout, intrinsics
         self.files, self.depth_scale = files, depth_scale
+        self.color_size, self.notes = color_size, notes
 
     def __len__(self) -> int:
         return len(self.files)
+
+    @property
+    def has_color(self) -> bool:
+        """Whether colour is used: registered to the depth, of a size that maps onto it."""
+        return self.color_size is not None
 
     def read_depth(self, frame: FrameFiles) -> np.ndarray:
         """Depth in metres as float32, 0 where there is no measurement."""
@@ -121,6 +187,25 @@ class Sequence:
                                           f"{self.intrinsics.width}x{self.intrinsics.height}")
         return raw.astype(np.float32) / np.float32(self.depth_scale)
 
+    def read_color(self, frame: FrameFiles) -> np.ndarray | None:
+        """(H, W, 3) uint8 RGB registered to the depth image (resized to it if need be); None
+        when colour is not used or this frame has none."""
+        if not self.has_color or frame.color is None:
+            return None
+        # UNCHANGED: no EXIF rotation, which would undo the registration.
+        raw = cv2.imread(str(frame.color), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise InputError(frame.color, "cannot decode colour frame (file is damaged or unreadable)")
+        if raw.dtype != np.uint8 or raw.ndim != 3 or raw.shape[2] not in (3, 4):
+            raise InputError(frame.color, f"colour frame must be 8-bit with 3 channels, decoded as "
+                                          f"{raw.dtype} {raw.shape}")
+        w, h = self.color_size
+        if raw.shape[:2] != (h, w):
+            raise InputError(frame.color, f"colour frame is {raw.shape[1]}x{raw.shape[0]}, expected {w}x{h}")
+        rgb = cv2.cvtColor(raw, cv2.COLOR_BGRA2RGB if raw.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+        size = (self.intrinsics.width, self.intrinsics.height)
+        return rgb if (w, h) == size else cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+
     def read_pose(self, frame: FrameFiles) -> np.ndarray | None:
         """Ground-truth 4x4 camera-to-world pose where the layout has one."""
         if frame.pose is None:
@@ -132,6 +217,7 @@ class Sequence:
         return pose
 
     def frames(self) -> Iterator[tuple[FrameFiles, np.ndarray]]:
+        """(files, depth) of every frame; the colour, where wanted, is read_color(files)."""
         for frame in self.files:
             yield frame, self.read_depth(frame)
 
@@ -199,4 +285,5 @@ def open_sequence(path: str | Path, *, intrinsics: Intrinsics | None = None, dep
             candidate = root / pattern.format(index)
             extra[kind] = candidate if candidate.exists() else None
         files.append(FrameFiles(index, depth_path, **extra))
-    return Sequence(root, layout.name, intrinsics.with_size(*size), files, depth_scale)
+    color_size, notes = plan_color(layout, files, size, root)
+    return Sequence(root, layout.name, intrinsics.with_size(*size), files, depth_scale, color_size, notes)

@@ -18,6 +18,7 @@ class ObserveMethod:
     def __init__(self):
         self._next_id = 0
         self._table = None
+        self.has_color: bool | None = None   # the first observation decides (PLYs keep one layout)
 
     def config(self) -> dict:
         return {}
@@ -25,9 +26,14 @@ class ObserveMethod:
     def process(self, obs: CameraObservation) -> FrameRecord:
         s = obs.surfels()
         n = len(s["position"])
+        if self.has_color is None:
+            self.has_color = obs.color is not None
+        # A frame without colour, in a run with colour, writes 0 0 0 (as a surfel never seen in colour).
+        color = s.get("color", np.zeros((n, 3), np.float32)) if self.has_color else None
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.uint32)
         self._next_id += n
-        self._table = vertex_table(s["position"], s["normal"], s["position"], s["radius"], s["confidence"], ids)
+        self._table = vertex_table(s["position"], s["normal"], s["position"], s["radius"], s["confidence"], ids,
+                                   color)
         return FrameRecord(frame=obs.frame_index, reference_frame=obs.frame_index,
                            camera_to_world=np.eye(4), seconds={}, surfels=n)
 

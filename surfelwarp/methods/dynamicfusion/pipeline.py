@@ -13,6 +13,8 @@ Blocks of voxels that provably cannot be fused this frame are not warped (voxel_
 The mesh extracted after fusion serves three uses: this frame's output (warped by W_t), the
 nodes' coverage test, and the next frame's data term (DynamicFusion Sec. 3.3.1 extracts it
 before the solve; it is the same mesh, so it is extracted once).
+With colour input the voxels also average the colour, with the tsdf's weights, and the mesh
+vertices take it from the voxels around them (tsdf.sample_color).
 The regulariser can use DynamicFusion's hierarchical deformation tree (tracking.hierarchy,
 deform/hierarchy.py), as the shared tracker can for SurfelWarp.
 """
@@ -29,7 +31,7 @@ from surfelwarp.geometry.se3 import invert, transform_surfels
 from surfelwarp.io.outputs import FrameRecord
 from surfelwarp.io.ply import vertex_table
 from surfelwarp.methods.dynamicfusion.params import DynamicFusionParams
-from surfelwarp.methods.dynamicfusion.tsdf import TSDFVolume, extract_mesh, fuse, node_distance_weight
+from surfelwarp.methods.dynamicfusion.tsdf import TSDFVolume, extract_mesh, fuse, node_distance_weight, sample_color
 from surfelwarp.methods.dynamicfusion.voxel_blocks import (VoxelBlocks, block_voxels, fusible_blocks, voxel_blocks,
                                                           warp_points_fast)
 from surfelwarp.preprocess import CameraObservation
@@ -69,10 +71,11 @@ class CanonicalMesh:
     weights: np.ndarray        # (N, k) float32
     live_vertices: np.ndarray  # (N, 3) float32, world
     live_normals: np.ndarray
+    colors: np.ndarray | None = None   # (N, 3) float32 RGB from the volume; None without colour
 
     @property
     def nbytes(self) -> int:
-        return sum(a.nbytes for a in vars(self).values())
+        return sum(a.nbytes for a in vars(self).values() if a is not None)
 
 
 class DynamicFusionMethod:
@@ -89,6 +92,7 @@ class DynamicFusionMethod:
         self.tracker = Tracker(intrinsics, params.tracking)
         self.reference_frame = 0
         self.T_reference_camera_to_world = np.eye(4)
+        self.has_color: bool | None = None   # the first observation decides (PLYs keep one layout)
 
     def config(self) -> dict:
         return self.params.to_dict()
@@ -99,6 +103,8 @@ class DynamicFusionMethod:
 
     # ------------------------------------------------------------------ one frame
     def process(self, obs: CameraObservation) -> FrameRecord:
+        if self.has_color is None:
+            self.has_color = obs.color is not None
         if self.volume is None:
             return self.initialise(obs)
         p, timer = self.params, StageTimer()
@@ -126,7 +132,7 @@ class DynamicFusionMethod:
         timer.lap("warp")
         weight = self.voxel_fusion_weight if ids is None else self.voxel_fusion_weight[ids]
         fused = fuse(self.volume, warped, weight, invert(self.T_camera_to_world), depth, self.intrinsics, p.tsdf,
-                     voxels=ids)
+                     voxels=ids, color=obs.color)
         del warped, weight
         timer.lap("fusion")
 
@@ -156,8 +162,9 @@ class DynamicFusionMethod:
         points = obs.surfels()["position"]
         if len(points) >= p.min_first_points:
             world, _ = transform_surfels(self.T_camera_to_world, points, points)
-            volume = TSDFVolume.from_points(world, p.tsdf)
-            fuse(volume, None, 1.0, invert(self.T_camera_to_world), self._depth(obs), self.intrinsics, p.tsdf)
+            volume = TSDFVolume.from_points(world, p.tsdf, color=self.has_color)
+            fuse(volume, None, 1.0, invert(self.T_camera_to_world), self._depth(obs), self.intrinsics, p.tsdf,
+                 color=obs.color)
             vertices, faces, normals = extract_mesh(volume)
             if len(vertices):
                 self.volume = volume
@@ -276,7 +283,8 @@ class DynamicFusionMethod:
         wf = self.field.params
         knn, weights = skin(vertices, self.field.nodes, wf.k_skin, self.field.sigma_m)
         live, live_n = warp(vertices, normals, knn, weights, self.field)
-        self.mesh = CanonicalMesh(vertices, normals, faces, knn, weights, live, live_n)
+        colors = sample_color(self.volume, vertices) if self.volume.color is not None else None
+        self.mesh = CanonicalMesh(vertices, normals, faces, knn, weights, live, live_n, colors)
 
     def model_bytes(self) -> int:
         return sum(self.model_parts_bytes().values())
@@ -316,11 +324,12 @@ class DynamicFusionMethod:
         reference frame's camera."""
         if self.mesh is None:
             empty = np.zeros((0, 3), np.float32)
-            return vertex_table(empty, empty, empty), np.zeros((0, 3), np.int32)
+            table = vertex_table(empty, empty, empty, color=empty if self.has_color else None)
+            return table, np.zeros((0, 3), np.int32)
         m = self.mesh
         live, live_n = transform_surfels(invert(self.T_camera_to_world), m.live_vertices, m.live_normals)
         ref, _ = transform_surfels(invert(self.T_reference_camera_to_world), m.vertices, m.normals)
-        return vertex_table(live, live_n, ref), m.faces
+        return vertex_table(live, live_n, ref, color=m.colors), m.faces
 
     def model_vertices(self) -> tuple[np.ndarray, np.ndarray]:
         """The canonical mesh in the reference frame's camera."""
@@ -328,4 +337,4 @@ class DynamicFusionMethod:
             return self.live_vertices()
         m = self.mesh
         ref, ref_n = transform_surfels(invert(self.T_reference_camera_to_world), m.vertices, m.normals)
-        return vertex_table(ref, ref_n, ref), m.faces
+        return vertex_table(ref, ref_n, ref, color=m.colors), m.faces

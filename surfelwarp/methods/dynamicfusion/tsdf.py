@@ -4,7 +4,8 @@ The volume lives in world coordinates (the camera frame of the first frame). Fus
 centres that the caller has already warped into the live scene (W(x_c) x_c, still in world), so
 this module knows nothing about the warp field. TSDF values are stored normalised by the
 truncation distance, in [-1, 1]: positive in front of the surface (free space), negative behind.
-Unobserved voxels hold tsdf 1 and weight 0.
+Unobserved voxels hold tsdf 1 and weight 0. With colour input each voxel also holds an RGB
+running average, fused with the tsdf's weights.
 """
 from __future__ import annotations
 
@@ -44,16 +45,26 @@ class TSDFVolume:
     voxel_size: float
     tsdf: np.ndarray         # (X, Y, Z) float32, normalised by the truncation distance
     weight: np.ndarray       # (X, Y, Z) float32, 0 = never observed
+    color: np.ndarray | None = None         # (X, Y, Z, 3) float32 RGB 0..255; None: no colour input
+    # (X, Y, Z) float32 the weight of the observations that had colour (== weight when every frame
+    # has it): a voxel first fused without colour takes its first colour whole.
+    color_weight: np.ndarray | None = None
 
     @classmethod
-    def empty(cls, origin, dims, voxel_size: float) -> "TSDFVolume":
+    def empty(cls, origin, dims, voxel_size: float, color: bool = False) -> "TSDFVolume":
+        """float32 colour (16 bytes a voxel with its weight): rounding to bytes would freeze a
+        running average whose weight reaches max_weight (a step of 1/100 of the difference)."""
         dims = tuple(int(d) for d in dims)
         return cls(origin=np.asarray(origin, np.float64).reshape(3), voxel_size=float(voxel_size),
-                   tsdf=np.ones(dims, np.float32), weight=np.zeros(dims, np.float32))
+                   tsdf=np.ones(dims, np.float32), weight=np.zeros(dims, np.float32),
+                   color=np.zeros(dims + (3,), np.float32) if color else None,
+                   color_weight=np.zeros(dims, np.float32) if color else None)
 
     @classmethod
-    def from_points(cls, points_world: np.ndarray, params: TSDFParams = TSDFParams()) -> "TSDFVolume":
-        """The axis-aligned box of the (finite) points plus params.margin_m on each side.
+    def from_points(cls, points_world: np.ndarray, params: TSDFParams = TSDFParams(),
+                    color: bool = False) -> "TSDFVolume":
+        """The axis-aligned box of the (finite) points plus params.margin_m on each side; with
+        `color`, voxels hold colour too.
 
         If the box would need more than params.max_voxels voxels at params.voxel_size_m, the
         voxel size grows until it fits (the volume's own voxel_size is the one in force).
@@ -72,7 +83,7 @@ class TSDFVolume:
             voxel *= max((np.prod(dims) / params.max_voxels) ** (1 / 3), 1.001)
         # Centre the grid on the box so the margin is even on both sides.
         origin = 0.5 * (lo + hi) - 0.5 * (dims - 1) * voxel
-        return cls.empty(origin, dims, voxel)
+        return cls.empty(origin, dims, voxel, color)
 
     @property
     def dims(self) -> tuple[int, int, int]:
@@ -84,7 +95,7 @@ class TSDFVolume:
 
     @property
     def nbytes(self) -> int:
-        return self.tsdf.nbytes + self.weight.nbytes
+        return sum(a.nbytes for a in (self.tsdf, self.weight, self.color, self.color_weight) if a is not None)
 
     def voxel_centres(self, start: int = 0, stop: int | None = None) -> np.ndarray:
         """World centres (n, 3) float32 of flat voxels start..stop (flat order = tsdf.ravel())."""
@@ -110,7 +121,7 @@ class FuseResult:
 def fuse(volume: TSDFVolume, warped_centres_world: np.ndarray | None, voxel_weight,
          T_world_to_camera: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics,
          params: TSDFParams = TSDFParams(), chunk: int = CHUNK_VOXELS,
-         voxels: np.ndarray | None = None) -> FuseResult:
+         voxels: np.ndarray | None = None, color: np.ndarray | None = None) -> FuseResult:
     """Fuse one depth map into `volume` in place (DynamicFusion Eq. 3-5).
 
     warped_centres_world: (V, 3) voxel centres moved by the warp, in world coordinates, flat
@@ -121,6 +132,8 @@ def fuse(volume: TSDFVolume, warped_centres_world: np.ndarray | None, voxel_weig
     psdf > -tau take v' = (v w + min(1, psdf/tau) w_new) / (w + w_new), w' = min(w + w_new, w_max).
     voxels: optional flat indices of the only voxels to consider (the caller knows the others
     cannot be fused); warped centres and weights are then given for those voxels, in that order.
+    color: (H, W, 3) RGB registered to depth_m; fused into volume.color (if it has colour) with
+    the same weights and cap as the tsdf, for the voxels within the band (|psdf| < tau).
     """
     if voxels is not None:
         if warped_centres_world is None:
@@ -145,6 +158,7 @@ def fuse(volume: TSDFVolume, warped_centres_world: np.ndarray | None, voxel_weig
     depth_flat = depth.reshape(-1)
     tsdf = volume.tsdf.reshape(-1)       # views: updates land in the volume
     weight = volume.weight.reshape(-1)
+    color_flat = None if color is None or volume.color is None else np.asarray(color, np.float32).reshape(-1, 3)
     visible = updated = 0
     for start, stop, (x, y, z) in _camera_coords(volume, warped_centres_world, T, chunk):
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -153,9 +167,10 @@ def fuse(volume: TSDFVolume, warped_centres_world: np.ndarray | None, voxel_weig
         # Comparisons are False for NaN, so NaN coordinates drop out here.
         ok = (z > 0) & (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
         idx = np.flatnonzero(ok)
-        d = depth_flat[v[idx].astype(np.int64) * width + u[idx].astype(np.int64)]
+        pixel = v[idx].astype(np.int64) * width + u[idx].astype(np.int64)
+        d = depth_flat[pixel]
         good = d > 0                       # also drops NaN depth
-        idx, d = idx[good], d[good]
+        idx, d, pixel = idx[good], d[good], pixel[good]
         visible += len(idx)
         psdf = d - z[idx]
         w_new = np.full(len(idx), voxel_weight, np.float32) if scalar_weight else voxel_weight[start:stop][idx]
@@ -163,11 +178,26 @@ def fuse(volume: TSDFVolume, warped_centres_world: np.ndarray | None, voxel_weig
         idx, psdf, w_new = idx[keep], psdf[keep], w_new[keep]
         updated += len(idx)
         g = idx + start if voxels is None else voxels[idx + start]
+        if color_flat is not None:
+            # Only within the band: a voxel farther in front of its pixel's surface is free space,
+            # and that colour is not its own (a silhouette's voxels would take the background's).
+            band = psdf < tau
+            _fuse_color(volume, g[band], color_flat[pixel[keep][band]], w_new[band], w_max)
         w_old = weight[g]
         w_sum = w_old + w_new
         tsdf[g] = (tsdf[g] * w_old + np.minimum(np.float32(1), psdf / tau) * w_new) / w_sum
         weight[g] = np.minimum(w_sum, w_max)
     return FuseResult(visible=int(visible), updated=int(updated))
+
+
+def _fuse_color(volume: TSDFVolume, g: np.ndarray, rgb: np.ndarray, w_new: np.ndarray, w_max: np.float32) -> None:
+    """Eq. 5's running average for the colour of flat voxels g, in place."""
+    color, color_weight = volume.color.reshape(-1, 3), volume.color_weight.reshape(-1)
+    w_old = color_weight[g]
+    w_sum = w_old + w_new
+    old = color[g]
+    color[g] = old + (w_new / w_sum)[:, None] * (rgb - old)     # a voxel's first colour exactly
+    color_weight[g] = np.minimum(w_sum, w_max)
 
 
 def _camera_coords(volume: TSDFVolume, warped: np.ndarray | None, T: np.ndarray, chunk: int):
@@ -310,3 +340,22 @@ def extract_mesh(volume: TSDFVolume) -> tuple[np.ndarray, np.ndarray, np.ndarray
     faces[flip] = faces[flip][:, ::-1]
     world = volume.origin + (verts + lo) * volume.voxel_size
     return world.astype(np.float32), faces.astype(np.int32), normals.astype(np.float32)
+
+
+def sample_color(volume: TSDFVolume, points_world: np.ndarray) -> np.ndarray:
+    """(N, 3) float32 RGB at world points: trilinear over the 8 surrounding voxels that were seen
+    in colour, renormalised over them (0 where none was). A marching-cubes vertex lies on the
+    edge between two voxels, so this is the colour interpolated along that edge."""
+    g = (np.asarray(points_world, np.float64).reshape(-1, 3) - volume.origin) / volume.voxel_size
+    dims = np.array(volume.dims)
+    base = np.clip(np.floor(g).astype(np.int64), 0, np.maximum(dims - 2, 0))
+    frac = np.clip(g - base, 0.0, 1.0)
+    total = np.zeros((len(g), 3))
+    weight_sum = np.zeros(len(g))
+    for corner in np.ndindex(2, 2, 2):
+        ijk = np.minimum(base + corner, dims - 1)
+        w = np.prod(np.where(np.array(corner, bool), frac, 1.0 - frac), axis=1)
+        w = w * (volume.color_weight[ijk[:, 0], ijk[:, 1], ijk[:, 2]] > 0)
+        total += w[:, None] * volume.color[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+        weight_sum += w
+    return (total / np.maximum(weight_sum, 1e-12)[:, None]).astype(np.float32)

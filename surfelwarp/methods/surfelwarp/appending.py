@@ -81,17 +81,23 @@ class AppendResult:
     candidates: int              # unmatched valid depth pixels considered
     rejected_weight: int         # failed delta_nn
     rejected_compressive: int    # passed delta_nn, failed Eq. 7
+    color: np.ndarray | None = None   # (A, 3) float32 RGB of each surfel's pixel; None without colour
 
     def __len__(self) -> int:
         return len(self.radius)
 
     def surfels(self, time: int, first_id: int) -> SurfelModel:
-        """The accepted candidates as new surfels (t_init = t_observed = time)."""
+        """The accepted candidates as new surfels (t_init = t_observed = time); without colour
+        their colour is 0 with weight 0 (SurfelModel.color_weight)."""
         n = len(self)
         t = np.full(n, time, np.int32)
+        if self.color is None:
+            color, color_weight = np.zeros((n, 3), np.float32), np.zeros(n, np.float32)
+        else:
+            color, color_weight = self.color, self.confidence.copy()
         return SurfelModel(self.ref_position, self.ref_normal, self.live_position, self.live_normal,
                            self.radius, self.confidence, t, t.copy(), self.knn, self.weights,
-                           np.arange(first_id, first_id + n, dtype=np.uint32))
+                           np.arange(first_id, first_id + n, dtype=np.uint32), color, color_weight)
 
 
 def _sq_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -293,4 +299,5 @@ def append_candidates(obs: CameraObservation, unmatched_pixel_mask: np.ndarray, 
                         obs.confidence_map[rows[keep], cols[keep]].astype(f32),
                         knn[keep], w[keep], ref.astype(f32), ref_n.astype(f32),
                         candidates=len(rows), rejected_weight=int(len(rows) - len(s)),
-                        rejected_compressive=int(compressive.sum()))
+                        rejected_compressive=int(compressive.sum()),
+                        color=None if obs.color is None else obs.color[rows[keep], cols[keep]].astype(f32))

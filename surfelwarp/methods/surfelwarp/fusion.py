@@ -148,9 +148,10 @@ def find_correspondences(maps: FusionMaps, obs: CameraObservation, live_confiden
 def fuse(model: SurfelModel, T_camera_to_world: np.ndarray, obs: CameraObservation,
          corr: Correspondences, time: int, params: FusionParams = FusionParams()
          ) -> tuple[SurfelModel, np.ndarray]:
-    """Eq. 5: confidence-weighted averages of live position, normal (renormalised) and radius,
-    summed confidence, t_observed = time. Returns the new model and the (H, W) mask of fused
-    pixels. The surfel indices in `corr` must be distinct (find_correspondences ensures it)."""
+    """Eq. 5: confidence-weighted averages of live position, normal (renormalised), radius and
+    (with obs.color) colour, summed confidence, t_observed = time. Returns the new model and the
+    (H, W) mask of fused pixels. The surfel indices in `corr` must be distinct
+    (find_correspondences ensures it)."""
     rows, cols, k = corr
     # float32 throughout: the weights are well conditioned and float64 costs here ~3x.
     T = np.asarray(T_camera_to_world, np.float64)
@@ -178,7 +179,25 @@ def fuse(model: SurfelModel, T_camera_to_world: np.ndarray, obs: CameraObservati
     fused = np.zeros(obs.valid.shape, bool)
     fused[rows, cols] = True
     return replace(model, live_position=position, live_normal=normal, radius=radius,
-                   confidence=confidence, t_observed=t_observed), fused
+                   confidence=confidence, t_observed=t_observed, **_fused_color(model, obs, corr)), fused
+
+
+def _fused_color(model: SurfelModel, obs: CameraObservation, corr: Correspondences) -> dict:
+    """color and color_weight after fusing obs.color with the same confidence weights as the
+    position; nothing changes without colour. The weight counts coloured observations only, so
+    a surfel first seen in a frame without colour takes its first colour whole."""
+    if obs.color is None:
+        return {}
+    rows, cols, k = corr
+    c_depth = obs.confidence_map[rows, cols]
+    w_old = model.color_weight[k]
+    w_new = w_old + c_depth
+    color, color_weight = model.color.copy(), model.color_weight.copy()
+    # The average as a step toward the new colour: a whole step (w_old = 0) lands on it exactly.
+    old = model.color[k]
+    color[k] = old + (c_depth / np.maximum(w_new, np.float32(1e-30)))[:, None] * (obs.color[rows, cols] - old)
+    color_weight[k] = w_new
+    return {"color": color, "color_weight": color_weight}
 
 
 def unmatched_depth_pixels(obs: CameraObservation, fused_pixel_mask: np.ndarray, maps: FusionMaps | None = None,

@@ -65,6 +65,7 @@ class SurfelWarpMethod:
         self.reference_frame = 0
         self.T_reference_camera_to_world = np.eye(4)
         self._next_id = 0
+        self.has_color: bool | None = None   # the first observation decides (PLYs keep one layout)
 
     def config(self) -> dict:
         return self.params.to_dict() | {"fusion_enabled": self.fusion}   # False: template tracking
@@ -192,8 +193,9 @@ class SurfelWarpMethod:
         timer = StageTimer()
         s = obs.surfels()
         position, normal = transform_surfels(self.T_camera_to_world, s["position"], s["normal"])
+        self.has_color = obs.color is not None
         self.model = SurfelModel.from_points(position, normal, s["radius"], s["confidence"], obs.time,
-                                             self._next_id, self.params.warp_field.k_skin)
+                                             self._next_id, self.params.warp_field.k_skin, s.get("color"))
         self._next_id += len(self.model)
         self._new_reference(obs)
         timer.lap("initialise")
@@ -236,13 +238,17 @@ class SurfelWarpMethod:
         m = self.model
         position, normal = transform_surfels(invert(self.T_camera_to_world), m.live_position, m.live_normal)
         ref, _ = transform_surfels(invert(self.T_reference_camera_to_world), m.ref_position, m.ref_normal)
-        return vertex_table(position, normal, ref, m.radius, m.confidence, m.ids), None
+        return vertex_table(position, normal, ref, m.radius, m.confidence, m.ids, self._color()), None
 
     def model_vertices(self) -> tuple[np.ndarray, None]:
         """The reference model in the reference frame's camera."""
         m = self.model
         ref, ref_normal = transform_surfels(invert(self.T_reference_camera_to_world), m.ref_position, m.ref_normal)
-        return vertex_table(ref, ref_normal, ref, m.radius, m.confidence, m.ids), None
+        return vertex_table(ref, ref_normal, ref, m.radius, m.confidence, m.ids, self._color()), None
+
+    def _color(self) -> np.ndarray | None:
+        """The surfels' fused colour for the PLYs, only when the input has colour."""
+        return self.model.color if self.has_color else None
 
     def finish(self, out_dir: Path, frames: list[FrameRecord]) -> None:
         """End of a run: OUT/surfels.png (SurfelWarp Fig. 4)."""

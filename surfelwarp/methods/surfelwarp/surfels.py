@@ -1,6 +1,6 @@
 """The surfel model: S_ref and S_live as parallel arrays (SurfelWarp Sec. III-IV).
 
-S_ref[i] and S_live[i] share radius, confidence, time stamps, k-NN nodes and weights.
+S_ref[i] and S_live[i] share radius, confidence, time stamps, k-NN nodes and weights, colour.
 Positions and normals are in world coordinates (the camera frame of the first frame):
 `ref_*` before the warp, `live_*` after it.
 """
@@ -24,6 +24,10 @@ class SurfelModel:
     knn: np.ndarray              # (N, k) int32 node indices
     weights: np.ndarray          # (N, k) float32 skinning weights (0 for unused slots)
     ids: np.ndarray              # (N,) uint32, unique for the surfel's whole life
+    color: np.ndarray            # (N, 3) float32 RGB 0..255, fused like the geometry
+    # (N,) float32 the confidence of the observations that had colour (== confidence when every
+    # frame has it); 0: never seen in colour, so the next coloured observation sets the colour.
+    color_weight: np.ndarray
 
     def __len__(self) -> int:
         return len(self.radius)
@@ -40,13 +44,20 @@ class SurfelModel:
                               for f in fields(self)})
 
     @staticmethod
-    def from_points(position, normal, radius, confidence, time: int, first_id: int, k: int = 4) -> "SurfelModel":
-        """New surfels whose reference and live geometry coincide; skinning is left empty."""
+    def from_points(position, normal, radius, confidence, time: int, first_id: int, k: int = 4,
+                    color=None) -> "SurfelModel":
+        """New surfels whose reference and live geometry coincide; skinning is left empty.
+        `color` (n, 3) RGB; without it the colour is 0 with weight 0."""
         n = len(position)
         position = np.ascontiguousarray(position, dtype=np.float32)
         normal = np.ascontiguousarray(normal, dtype=np.float32)
+        confidence = np.asarray(confidence, np.float32)
+        if color is None:
+            color, color_weight = np.zeros((n, 3), np.float32), np.zeros(n, np.float32)
+        else:
+            color, color_weight = np.asarray(color, np.float32).reshape(n, 3), confidence.copy()
         return SurfelModel(position, normal, position.copy(), normal.copy(),
-                           np.asarray(radius, np.float32), np.asarray(confidence, np.float32),
+                           np.asarray(radius, np.float32), confidence,
                            np.full(n, time, np.int32), np.full(n, time, np.int32),
                            np.zeros((n, k), np.int32), np.zeros((n, k), np.float32),
-                           np.arange(first_id, first_id + n, dtype=np.uint32))
+                           np.arange(first_id, first_id + n, dtype=np.uint32), color, color_weight)

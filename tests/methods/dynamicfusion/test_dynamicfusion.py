@@ -13,7 +13,7 @@ from surfelwarp.deform.hierarchy import HierarchyParams
 from surfelwarp.deform.warp_field import WarpField, skin, warp
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import invert, se3_exp, transform_surfels
-from surfelwarp.io.ply import VERTEX_FIELDS, read_ply
+from surfelwarp.io.ply import COLOR_FIELDS, VERTEX_FIELDS, read_ply
 from surfelwarp.io.sequence import open_sequence
 from surfelwarp.methods.dynamicfusion.params import DynamicFusionParams
 from surfelwarp.methods.dynamicfusion.pipeline import DynamicFusionMethod
@@ -54,7 +54,9 @@ def test_sheet_run_writes_the_contract_and_tracks_the_surface(sheet, tmp_path):
             assert frame["gauss_newton_iterations"] >= 1
     assert sorted(p.name for p in (out / "live").iterdir()) == [f"frame-{i:06d}.ply" for i in (0, 4, 7)]
     table, faces = read_ply(out / "live" / "frame-000007.ply")
-    assert table.dtype.names == VERTEX_FIELDS and all(table.dtype[n] == np.dtype("<f4") for n in VERTEX_FIELDS)
+    colour = COLOR_FIELDS if open_sequence(sheet).has_color else ()    # synth may paint its scenes
+    assert table.dtype.names == VERTEX_FIELDS + colour
+    assert all(table.dtype[n] == np.dtype("<f4") for n in VERTEX_FIELDS)
     assert len(faces) > len(table) and faces.min() == 0 and faces.max() == len(table) - 1
     assert len(table) == metrics["frames"][-1]["mesh_vertices"]
     for frame in metrics["frames"][1:]:
@@ -222,9 +224,11 @@ def test_cli_run_writes_the_contract(tmp_path):
         assert frame["frame"] == i and frame["reference_frame"] == 0
         assert frame["voxels"] > 500_000 and frame["nodes"] > 10 and frame["seconds"]["total"] > 0
         assert i == 0 or STAGES <= frame["seconds"].keys()
+    colour = COLOR_FIELDS if open_sequence(seq).has_color else ()      # synth may paint its scenes
     for path in (out / "live" / "frame-000002.ply", out / "model.ply"):
         table, faces = read_ply(path)
-        assert table.dtype.names == VERTEX_FIELDS and all(table.dtype[n] == np.dtype("<f4") for n in VERTEX_FIELDS)
+        assert table.dtype.names == VERTEX_FIELDS + colour
+        assert all(table.dtype[n] == np.dtype("<f4") for n in VERTEX_FIELDS)
         assert len(table) > 1000 and faces.shape[1] == 3 and 0 <= faces.min() and faces.max() < len(table)
     table, _ = read_ply(out / "live" / "frame-000002.ply")
     assert len(table) == metrics["frames"][2]["mesh_vertices"]
