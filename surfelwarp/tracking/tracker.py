@@ -10,14 +10,18 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 
 from surfelwarp.deform.hierarchy import Hierarchy, HierarchyParams, build_hierarchy, with_hierarchy
-from surfelwarp.deform.warp_field import WarpField, to_local
+from surfelwarp.deform.warp_field import WarpField, inverse_warp, to_local, warp
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.geometry.se3 import fit_rigid, invert
+from surfelwarp.geometry.se3 import fit_rigid, invert, transform_points
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.anchors import AnchorParams, NodeAnchors, follow_motion, node_depth_m
 from surfelwarp.tracking.degeneracy import HeldDirections
+from surfelwarp.tracking.features import (AnchoredMatches, FeatureParams, Keyframe, Keypoints, ModelView, combine,
+                                          detect, lift, locally_rigid, match_descriptors, match_frames, on_model_map,
+                                          solved_index)
 from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.gauss_newton import NonRigidParams, NonRigidResult, solve_nonrigid
 from surfelwarp.tracking.rigid_icp import RigidParams, RigidResult, rigid_icp
@@ -53,6 +57,9 @@ class TrackingParams:
     # Below this share of still (anchored) surface in view there is no evidence of the camera's
     # motion: it is held, and rigid ICP's motion is the scene's (as with a static camera).
     min_still_share: float = 0.1
+    # Colour features matched from frame to frame (tracking/features.py); their weight in the
+    # solve is nonrigid.feature_weight (0: colour is not used).
+    features: FeatureParams = field(default_factory=FeatureParams)
 
     CHOICES = {"camera": CAMERAS}
 
@@ -104,6 +111,7 @@ class TrackingCounts:
     # whose rigid ICP found too few pairs (the pose kept from the frame before).
     lu_fallbacks: int = 0
     rigid_pose_kept: bool = False
+    feature_matches: int | None = None        # colour features in the solve (None: no colour)
 
 
 class Tracker:
@@ -122,6 +130,10 @@ class Tracker:
         self._camera_moves = params.camera == "moving"  # this frame: still surface to tell its motion
         self._lu_fallbacks = 0                          # this frame's, over every solve
         self._free_space: tuple[CameraObservation, FreeSpace] | None = None
+        self._previous_features: tuple[Keypoints, np.ndarray, np.ndarray] | None = None   # and its depth
+        self._feature_count: int | None = None
+        self._detected: tuple[CameraObservation, Keypoints] | None = None
+        self._keyframe: Keyframe | None = None
 
     def free_space(self, obs: CameraObservation, T_camera_to_world: np.ndarray) -> FreeSpace:
         """The observation's free space seen from T_camera_to_world, built once per observation
@@ -178,9 +190,90 @@ class Tracker:
             self._T_guess = self.T_camera_to_world
         return result
 
-    def nonrigid(self, field: WarpField, surfels: SurfelSet, obs: CameraObservation) -> tuple[WarpField, NonRigidResult]:
-        """Gauss-Newton from `field` at the rigid pose; call after `rigid`. Returns the solved
-        field (not yet factored)."""
+    def _keypoints(self, obs: CameraObservation) -> Keypoints:
+        """The observation's features, detected once."""
+        if self._detected is None or self._detected[0] is not obs:
+            self._detected = obs, detect(obs.color, obs.valid, self.params.features)
+        return self._detected[1]
+
+    def new_reference(self, obs: CameraObservation, ids: np.ndarray, ref_position: np.ndarray) -> None:
+        """Keep the reference frame's features, each on the reference surfel (world) at its
+        depth point: matched into every later frame, they stop frame-to-frame drift adding up.
+        Call with each new reference (the first frame, every reinitialisation)."""
+        self._keyframe = None
+        if obs.color is None or self.params.nonrigid.feature_weight <= 0 or len(ref_position) == 0:
+            return
+        kp = self._keypoints(obs)
+        q, ok = lift(kp.pixels, obs.vertex_map, obs.valid)
+        world = transform_points(self.T_camera_to_world, q[ok])
+        if len(world) == 0 or kp.descriptors is None:
+            return
+        d, j = KDTree(np.asarray(ref_position, np.float64)).query(world)
+        near = d < self.params.features.anchor_distance_m
+        self._keyframe = Keyframe(Keypoints(kp.pixels[ok][near], kp.descriptors[ok][near]), world[near],
+                                  np.asarray(ids)[j[near]])
+
+    def features(self, obs: CameraObservation, model: ModelView | None = None,
+                 field: WarpField | None = None) -> AnchoredMatches | None:
+        """Colour features of `obs` matched with the reference frame's and the last frame's, on
+        the surfels the solve uses (`field`: the warp at the last frame). Call after `rigid`.
+        Remembers obs's features for the next frame; with no model (the first frame) that is all.
+        None without colour."""
+        self._feature_count = None
+        if obs.color is None or self.params.nonrigid.feature_weight <= 0:
+            self._previous_features = None
+            return None
+        kp = self._keypoints(obs)
+        previous, self._previous_features = self._previous_features, (kp, obs.vertex_map, obs.valid)
+        if model is None:
+            return None
+        found = [self._keyframe_matches(kp, obs, model, field)] if self._keyframe is not None else []
+        if previous is not None:
+            found.append(self._previous_matches(previous, kp, obs, model, field))
+        if not found:
+            return None
+        matches = combine(*found)
+        self._feature_count = len(matches)
+        return matches
+
+    def _keyframe_matches(self, kp: Keypoints, obs: CameraObservation, model: ModelView,
+                          field: WarpField) -> AnchoredMatches:
+        """Reference features in `obs`, checked against where the last frame's warp takes them."""
+        p, kf = self.params.features, self._keyframe
+        ia, ib = match_descriptors(kf.keypoints, kp, p)
+        q, ok = lift(kp.pixels[ib], obs.vertex_map, obs.valid)
+        index = np.minimum(np.searchsorted(model.ids, kf.ids[ia]), max(len(model.ids) - 1, 0))
+        ok &= model.ids[index] == kf.ids[ia]          # surfels removed since are gone
+        ia, q, index = ia[ok], q[ok], index[ok]
+        predicted, _ = warp(kf.points[ia], None, model.knn[index], model.weights[index], field)
+        # The solve's surfels are those the model map shows, one a pixel: the feature goes on
+        # the one drawn where the last frame's warp puts it (its neighbour, skinned alike).
+        pixels = self.intrinsics.project(transform_points(invert(self._T_previous), predicted))
+        drawn, ok = on_model_map(pixels, predicted, model, p.anchor_distance_m)
+        solved, in_solve = solved_index(drawn, model.visible)
+        seen = transform_points(self.T_camera_to_world, q)
+        ok &= in_solve & (np.linalg.norm(predicted - seen, axis=1) < p.max_motion_m)
+        keep = np.flatnonzero(ok)[locally_rigid(predicted[ok], seen[ok], p)]
+        return AnchoredMatches(solved[keep], kf.points[ia[keep]], q[keep])
+
+    def _previous_matches(self, previous, kp: Keypoints, obs: CameraObservation, model: ModelView,
+                          field: WarpField) -> AnchoredMatches:
+        """Last-frame features in `obs`, on the surfels the model map showed at them."""
+        p = self.params.features
+        m = match_frames(previous[0], kp, previous[1], previous[2], obs.vertex_map, obs.valid,
+                         invert(self.T_camera_to_world) @ self._T_previous, p)
+        world = transform_points(self._T_previous, m.previous_points)
+        index, keep = on_model_map(m.previous_pixels, world, model, p.anchor_distance_m)
+        solved, in_solve = solved_index(index, model.visible)
+        keep &= in_solve
+        index = index[keep]
+        ref, _ = inverse_warp(world[keep], None, model.knn[index], model.weights[index], field)
+        return AnchoredMatches(solved[keep], ref, m.current_points[keep])
+
+    def nonrigid(self, field: WarpField, surfels: SurfelSet, obs: CameraObservation,
+                 matches: AnchoredMatches | None = None) -> tuple[WarpField, NonRigidResult]:
+        """Gauss-Newton from `field` at the rigid pose; call after `rigid` (and `features`, whose
+        matches it takes). Returns the solved field (not yet factored)."""
         depth = (obs.vertex_map, obs.normal_map, obs.valid, self.intrinsics)
         model = (surfels.positions, surfels.normals, surfels.knn, surfels.weights)
         h = self.params.hierarchy
@@ -193,7 +286,7 @@ class Tracker:
 
         def solve(start: WarpField, T_camera_to_world: np.ndarray) -> tuple[WarpField, NonRigidResult]:
             solved, result = solve_nonrigid(start, *model, *depth, T_camera_to_world, self.params.nonrigid, anchor,
-                                            obs.beyond, self.free_space(obs, T_camera_to_world))
+                                            obs.beyond, self.free_space(obs, T_camera_to_world), matches)
             self._lu_fallbacks += result.lu_fallbacks
             return solved, result
 
@@ -231,7 +324,7 @@ class Tracker:
             int(self.anchors.released.sum()) if self.anchors is not None else None,
             round(alignment.unsupported_fraction, 5) if alignment is not None else None,
             round(alignment.unexplained_fraction, 5) if alignment is not None else None,
-            self._lu_fallbacks, not np.isfinite(rigid.rmse_m))
+            self._lu_fallbacks, not np.isfinite(rigid.rmse_m), self._feature_count)
 
     def _hierarchy(self, field: WarpField) -> Hierarchy:
         """The deformation tree over the field's nodes, rebuilt when they change."""

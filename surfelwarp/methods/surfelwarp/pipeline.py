@@ -1,8 +1,8 @@
 """SurfelWarp, one frame at a time (Gao & Tedrake 2018, Fig. 1).
 
 `SurfelWarpMethod.process` is the whole per-frame pipeline, top to bottom: draw solver maps ->
-rigid ICP -> non-rigid Gauss-Newton -> forward warp (Sec. VII) -> index map at the new pose ->
-fuse depth into live surfels (VI-A) -> skin, reject and append unmatched depth surfels (VI-B..D)
+rigid ICP -> colour features put on the model -> non-rigid Gauss-Newton -> forward warp (Sec. VII)
+-> index map at the new pose -> fuse depth into live surfels (VI-A) -> skin, reject and append unmatched depth surfels (VI-B..D)
 -> remove unstable and redundant surfels (VI-D) -> inverse warp of the fused surfels to S_ref ->
 extend the warp field over the appended ones (VI-D) -> reinitialise when tracking struggles (VI-F).
 With `fusion=False` the first frame's surfels are a fixed template tracked through the sequence.
@@ -32,6 +32,7 @@ from surfelwarp.preprocess import CameraObservation
 from surfelwarp.render.index_map import render_index_map
 from surfelwarp.render.solver_maps import maps_to_world, render_solver_maps
 from surfelwarp.timing import StageTimer
+from surfelwarp.tracking.features import ModelView
 from surfelwarp.tracking.tracker import SurfelSet, Tracker
 
 __all__ = ["SurfelWarpMethod", "SurfelWarpParams", "plot_counts"]
@@ -107,7 +108,12 @@ class SurfelWarpMethod:
         seen[maps.index[maps.index >= 0]] = True
         visible = np.flatnonzero(seen)
         surfels = SurfelSet(*(np.take(a, visible, axis=0) for a in (m.ref_position, m.ref_normal, m.knn, m.weights)))
-        field, nonrigid = self.tracker.nonrigid(self.field, surfels, obs)
+
+        # Colour features of the last frame matched into this one, on the surfels drawn at them.
+        matches = self.tracker.features(obs, ModelView(maps.index, visible, m.live_position, m.ids, m.knn, m.weights),
+                                        self.field)
+        timer.lap("features")
+        field, nonrigid = self.tracker.nonrigid(self.field, surfels, obs, matches)
         self.field = self.tracker.factor(field, nonrigid)
         timer.lap("nonrigid")
 
@@ -198,6 +204,7 @@ class SurfelWarpMethod:
                                              self._next_id, self.params.warp_field.k_skin, s.get("color"))
         self._next_id += len(self.model)
         self._new_reference(obs)
+        self.tracker.features(obs)       # remembered for the next frame's matches
         timer.lap("initialise")
         return FrameRecord(frame=obs.frame_index, reference_frame=self.reference_frame,
                            camera_to_world=self.T_camera_to_world.copy(), seconds=timer.seconds,
@@ -224,6 +231,7 @@ class SurfelWarpMethod:
         m.knn, m.weights = skin(m.ref_position, self.field.nodes, wp.k_skin, self.field.sigma_m)
         self.reference_frame = obs.frame_index
         self.T_reference_camera_to_world = self.T_camera_to_world.copy()
+        self.tracker.new_reference(obs, m.ids, m.ref_position)
         self.trigger.reset()
 
     # ------------------------------------------------------------------ outputs

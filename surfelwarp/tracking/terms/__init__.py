@@ -29,6 +29,7 @@ from surfelwarp.tracking.free_space import FreeSpace
 
 if TYPE_CHECKING:     # the solve that builds the terms imports this module
     from surfelwarp.tracking.anchors import AnchorTerm
+    from surfelwarp.tracking.features import AnchoredMatches
     from surfelwarp.tracking.gauss_newton import NonRigidParams
 
 ROBUST = ("none", "huber", "tukey")
@@ -52,6 +53,7 @@ class Problem:
     anchor: AnchorTerm | None = None
     depth_beyond: np.ndarray | None = None
     free_space: FreeSpace | None = None   # the observation's, at any pose (built if None)
+    matches: AnchoredMatches | None = None   # colour features on the solved surfels
 
 
 @dataclass(frozen=True, eq=False)

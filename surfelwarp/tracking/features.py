@@ -1,0 +1,220 @@
+"""Sparse colour correspondences between two frames, lifted to 3-D and cleaned of outliers.
+
+Depth cannot see motion along a surface (SurfelWarp Fig. 9b); colour can. Features (SIFT by
+default, ORB as the fast option) are detected where both frames have depth, matched by
+descriptor with Lowe's ratio test and a mutual check, lifted to 3-D with each frame's vertex
+map, and kept only if they move less than `max_motion_m` and agree with their neighbours: a
+match whose distances to the nearby matches change by more than a small tolerance between the
+frames breaks local rigidity (a locally rigid consensus, in place of a global RANSAC that a
+deforming scene would fail). tracking/terms/features.py puts the survivors in the solve.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from pykdtree.kdtree import KDTree
+
+from surfelwarp.geometry.se3 import transform_points
+
+DETECTORS = ("sift", "orb")
+
+
+@dataclass(frozen=True)
+class FeatureParams:
+    detector: str = "sift"
+    max_features: int = 2000
+    sift_contrast: float = 0.04         # SIFT's contrast threshold (OpenCV's default)
+    ratio: float = 0.8                  # Lowe's test: best distance below this share of the second
+    max_motion_m: float = 0.1           # a feature moving farther between two frames is an outlier
+    rigidity_radius_m: float = 0.06     # neighbours whose distance is compared
+    rigidity_tolerance: float = 0.1     # a distance may change by this share of itself ...
+    rigidity_floor_m: float = 0.006     # ... or by this much (depth noise, pixel rounding)
+    min_agreement: float = 0.6          # share of a match's neighbours whose distances agree
+    min_neighbours: int = 2             # a match with fewer neighbours has no support: dropped
+    anchor_distance_m: float = 0.01     # a feature is put on the model surfel drawn at its pixel
+                                        # if that surfel is this close to the feature's depth point
+
+    CHOICES = {"detector": DETECTORS}
+
+    def problems(self) -> dict[str, str | bool]:
+        return {"ratio": not 0 < self.ratio <= 1 and "must be in (0, 1]",
+                "min_agreement": not 0 <= self.min_agreement <= 1 and "must be in [0, 1]"}
+
+
+@dataclass(frozen=True)
+class Keypoints:
+    """One frame's features: pixel positions (n, 2) (x, y) and descriptors."""
+    pixels: np.ndarray
+    descriptors: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class FeatureMatches:
+    """Matched features of a previous and a current frame: pixels (n, 2) (x, y) and points
+    (n, 3) in each frame's camera."""
+    previous_pixels: np.ndarray
+    current_pixels: np.ndarray
+    previous_points: np.ndarray
+    current_points: np.ndarray
+    candidates: int = 0                 # descriptor matches before the 3-D checks
+
+    def __len__(self) -> int:
+        return len(self.previous_points)
+
+    def select(self, keep: np.ndarray) -> "FeatureMatches":
+        return FeatureMatches(self.previous_pixels[keep], self.current_pixels[keep], self.previous_points[keep],
+                              self.current_points[keep], self.candidates)
+
+
+def grey(color: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(np.ascontiguousarray(color, np.uint8), cv2.COLOR_RGB2GRAY)
+
+
+def detect(color: np.ndarray, valid: np.ndarray, params: FeatureParams) -> Keypoints:
+    """Features of an RGB image where `valid` (depth) holds, away from its edges (a feature on
+    a depth edge mixes foreground and background)."""
+    mask = cv2.erode(np.asarray(valid, np.uint8), np.ones((5, 5), np.uint8))
+    if params.detector == "sift":
+        detector = cv2.SIFT_create(nfeatures=params.max_features, contrastThreshold=params.sift_contrast)
+    else:
+        detector = cv2.ORB_create(nfeatures=params.max_features)
+    kp, desc = detector.detectAndCompute(grey(color), mask)
+    pixels = np.array([k.pt for k in kp], np.float32).reshape(-1, 2)
+    return Keypoints(pixels, desc)
+
+
+def match_descriptors(a: Keypoints, b: Keypoints, params: FeatureParams) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (ia, ib) that pass the ratio test both ways and pick each other."""
+    if a.descriptors is None or b.descriptors is None or len(a.pixels) < 2 or len(b.pixels) < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    norm = cv2.NORM_L2 if params.detector == "sift" else cv2.NORM_HAMMING
+    matcher = cv2.BFMatcher(norm)
+
+    def best(x, y):
+        pairs = matcher.knnMatch(x, y, k=2)
+        idx = np.array([m[0].trainIdx if len(m) == 2 else -1 for m in pairs], np.int64)
+        d = np.array([(m[0].distance, m[1].distance) if len(m) == 2 else (1.0, 1.0) for m in pairs], np.float64)
+        ok = (idx >= 0) & (d[:, 0] < params.ratio * d[:, 1])
+        return np.where(ok, idx, -1)
+
+    ab, ba = best(a.descriptors, b.descriptors), best(b.descriptors, a.descriptors)
+    ia = np.flatnonzero(ab >= 0)
+    ib = ab[ia]
+    mutual = ba[ib] == ia
+    return ia[mutual], ib[mutual]
+
+
+def lift(pixels: np.ndarray, vertex_map: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera points at the nearest pixel centres, and whether that pixel has depth."""
+    return pixel_values(pixels, vertex_map).astype(np.float64), pixel_values(pixels, valid)
+
+
+def locally_rigid(previous: np.ndarray, current: np.ndarray, params: FeatureParams) -> np.ndarray:
+    """(n,) bool: matches whose distances to their neighbours (within rigidity_radius_m in the
+    previous frame) mostly keep their length. Twice: the first pass's outliers no longer vote."""
+    keep = np.ones(len(previous), bool)
+    k = min(9, len(previous))
+    if k < 2:
+        return np.zeros(len(previous), bool)
+    for _ in range(2):
+        idx = np.flatnonzero(keep)
+        if len(idx) < 2:
+            return np.zeros(len(previous), bool)
+        tree = KDTree(previous[idx])
+        dist, nb = tree.query(previous, k=min(k, len(idx)))
+        nb = idx[np.minimum(nb, len(idx) - 1)]
+        near = (dist < params.rigidity_radius_m) & (nb != np.arange(len(previous))[:, None])
+        after = np.linalg.norm(current[:, None, :] - current[nb], axis=-1)
+        agree = np.abs(after - dist) <= np.maximum(params.rigidity_tolerance * dist, params.rigidity_floor_m)
+        count = near.sum(axis=1)
+        share = (agree & near).sum(axis=1) / np.maximum(count, 1)
+        keep = (count >= params.min_neighbours) & (share >= params.min_agreement)
+    return keep
+
+
+def match_frames(previous: Keypoints, current: Keypoints, previous_vertex: np.ndarray, previous_valid: np.ndarray,
+                 current_vertex: np.ndarray, current_valid: np.ndarray, T_previous_to_current: np.ndarray,
+                 params: FeatureParams) -> FeatureMatches:
+    """Descriptor matches lifted to 3-D with depth at both ends, then the motion bound (in the
+    current camera, the previous points moved by the camera's motion) and local rigidity."""
+    ia, ib = match_descriptors(previous, current, params)
+    pa, pb = previous.pixels[ia], current.pixels[ib]
+    qa, ok_a = lift(pa, previous_vertex, previous_valid)
+    qb, ok_b = lift(pb, current_vertex, current_valid)
+    ok = ok_a & ok_b
+    qa_now = transform_points(T_previous_to_current, qa)
+    ok &= np.linalg.norm(qb - qa_now, axis=1) < params.max_motion_m
+    matches = FeatureMatches(pa[ok], pb[ok], qa[ok], qb[ok], candidates=len(ia))
+    if len(matches) == 0:
+        return matches
+    return matches.select(locally_rigid(qa_now[ok], qb[ok], params))
+
+
+@dataclass(frozen=True)
+class ModelView:
+    """The model as the feature stage reads it: `index_map` (H, W) of the surfels drawn at the
+    last pose (-1: none), the solved surfels `visible` (sorted), and every surfel's live
+    position (world), unique id (ascending), skinning knn and weights."""
+    index_map: np.ndarray
+    visible: np.ndarray
+    live_position: np.ndarray
+    ids: np.ndarray
+    knn: np.ndarray
+    weights: np.ndarray
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """The reference frame's features with the world point and the surfel (by id) each lies on."""
+    keypoints: Keypoints
+    points: np.ndarray          # (n, 3) world, reference frame
+    ids: np.ndarray             # (n,) surfel ids
+
+
+@dataclass(frozen=True)
+class AnchoredMatches:
+    """Matches put on the model: the solved surfel each feature lies on, the feature's
+    reference-frame point (world) and where the current frame sees it (current camera)."""
+    index: np.ndarray           # (n,) into the solved surfels
+    ref_points: np.ndarray      # (n, 3)
+    target_points: np.ndarray   # (n, 3)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+
+def combine(*sets: AnchoredMatches) -> AnchoredMatches:
+    """The sets' matches, one a surfel (the first set's first): the feature term reads a
+    feature's reference point in its surfel's place."""
+    index = np.concatenate([m.index for m in sets])
+    first = np.unique(index, return_index=True)[1]
+    return AnchoredMatches(index[first], np.concatenate([m.ref_points for m in sets])[first],
+                           np.concatenate([m.target_points for m in sets])[first])
+
+
+def pixel_values(pixels: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """The image's values at the pixel centres nearest to (x, y) positions."""
+    h, w = image.shape[:2]
+    col = np.clip(np.rint(pixels[:, 0]).astype(np.int64), 0, w - 1)
+    row = np.clip(np.rint(pixels[:, 1]).astype(np.int64), 0, h - 1)
+    return image[row, col]
+
+
+def solved_index(index: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions of model indices among the sorted solved surfels, and whether each is one."""
+    if len(visible) == 0:
+        return np.zeros(len(index), np.int64), np.zeros(len(index), bool)
+    pos = np.minimum(np.searchsorted(visible, index), len(visible) - 1)
+    return pos, (visible[pos] == index) & (index >= 0)
+
+
+def on_model_map(pixels: np.ndarray, points_world: np.ndarray, model: ModelView, max_distance_m: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(model index, keep) of features seen at `pixels` of the last frame: the surfel the model
+    map shows there, kept where it lies within max_distance_m of the feature's depth point (the
+    model and that frame agree)."""
+    index = pixel_values(pixels, model.index_map).astype(np.int64)
+    near = np.linalg.norm(np.take(model.live_position, np.maximum(index, 0), axis=0) - points_world, axis=1)
+    return index, (index >= 0) & (near < max_distance_m)

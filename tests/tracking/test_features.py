@@ -1,0 +1,95 @@
+"""Colour features: detection where depth is, matching with outlier removal on a known warp of a
+textured image, and the local rigidity test."""
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from surfelwarp.data_tools.texture import albedo
+from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.tracking.features import FeatureParams, detect, locally_rigid, match_frames
+
+INTR = Intrinsics(500.0, 500.0, 319.5, 239.5, 640, 480)
+
+
+def textured_plane(material_offset=(0.0, 0.0)):
+    """An RGB image of a textured plane 1 m away filling the view, its vertex map and validity;
+    the texture is painted at the plane's points plus `material_offset` (x, y metres)."""
+    v, u = np.mgrid[0:INTR.height, 0:INTR.width].astype(np.float64)
+    vertex = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones(u.shape)], -1)
+    material = vertex.reshape(-1, 3) + [*material_offset, 0.0]
+    rgb = (255 * albedo(material)).reshape(INTR.height, INTR.width, 3).astype(np.uint8)
+    return rgb, vertex.astype(np.float32), np.ones(u.shape, bool)
+
+
+def known_warp(rgb: np.ndarray, rng: np.random.Generator):
+    """The image turned by 8 deg, shifted and waved (a smooth non-rigid warp) with 8-bit noise;
+    returns it and the map from old to new pixel positions."""
+    h, w = rgb.shape[:2]
+    A = cv2.getRotationMatrix2D((w / 2, h / 2), 8.0, 1.0)
+    A[:, 2] += (6.0, -4.0)
+
+    def forward(p):
+        q = p @ A[:, :2].T + A[:, 2]
+        return q + np.stack([3.0 * np.sin(q[:, 1] / 60.0), 2.0 * np.sin(q[:, 0] / 80.0)], -1)
+
+    # remap needs the inverse: solve forward(p) = q per pixel by fixed-point iterations
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    q = np.stack([u.ravel(), v.ravel()], -1)
+    Ainv = cv2.invertAffineTransform(A)
+    p = q.copy()
+    for _ in range(20):
+        p = (q - (forward(p) - (p @ A[:, :2].T + A[:, 2]))) @ Ainv[:, :2].T + Ainv[:, 2]
+    maps = p.reshape(h, w, 2).astype(np.float32)
+    out = cv2.remap(rgb, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    out = np.clip(out + rng.normal(0.0, 2.0, out.shape), 0, 255).astype(np.uint8)
+    return out, forward
+
+
+@pytest.mark.parametrize("detector", ["sift", "orb"])
+def test_matches_on_a_known_warp_are_correct(detector):
+    rng = np.random.default_rng(0)
+    rgb, vertex, valid = textured_plane()
+    warped, forward = known_warp(rgb, rng)
+    params = FeatureParams(detector=detector)
+    a, b = detect(rgb, valid, params), detect(warped, valid, params)
+    m = match_frames(a, b, vertex, valid, vertex, valid, np.eye(4), params)
+    error = np.linalg.norm(forward(m.previous_pixels.astype(np.float64)) - m.current_pixels, axis=1)
+    assert len(m) >= 200, len(m)
+    # correct: within 4 px (ORB keypoints of coarse pyramid levels sit a few pixels off); a wrong
+    # match lands tens of pixels away
+    assert np.mean(error < 4.0) >= 0.95, (len(m), np.mean(error < 4.0), np.percentile(error, [50, 90, 99]))
+    assert m.candidates >= len(m)
+
+
+def test_a_wrong_match_breaks_local_rigidity():
+    rng = np.random.default_rng(1)
+    previous = rng.uniform(-0.2, 0.2, (400, 3)) * [1, 1, 0.1] + [0, 0, 1]
+    turn = cv2.Rodrigues(np.array([0.0, 0.3, 0.1]))[0]
+    current = previous @ turn.T + [0.02, 0.0, 0.01]        # rigid: every distance kept
+    wrong = rng.choice(len(previous), 40, replace=False)
+    current[wrong] += rng.normal(0.0, 0.03, (40, 3)) + 0.02
+    keep = locally_rigid(previous, current, FeatureParams())
+    right = np.setdiff1d(np.arange(len(previous)), wrong)
+    assert not keep[wrong].any()
+    assert keep[right].mean() > 0.95
+
+
+def test_no_texture_and_no_depth_give_no_features():
+    flat = np.full((480, 640, 3), 128, np.uint8)
+    _, _, valid = textured_plane()
+    assert len(detect(flat, valid, FeatureParams()).pixels) == 0
+    rgb, _, _ = textured_plane()
+    assert len(detect(rgb, np.zeros_like(valid), FeatureParams()).pixels) == 0
+
+
+def test_a_motion_beyond_the_bound_is_dropped():
+    rgb, vertex, valid = textured_plane()
+    params = FeatureParams()
+    kp = detect(rgb, valid, params)
+    far = np.eye(4)
+    far[2, 3] = 0.2                                        # the camera says the scene moved 20 cm
+    assert len(match_frames(kp, kp, vertex, valid, vertex, valid, np.eye(4), params)) > 100
+    assert len(match_frames(kp, kp, vertex, valid, vertex, valid, far, params)) == 0
+    assert len(match_frames(kp, kp, vertex, valid, vertex, valid, far, replace(params, max_motion_m=0.3))) > 100
