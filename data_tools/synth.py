@@ -154,9 +154,12 @@ def generate(scene: str, out_dir, frames: int | None = None, size=(640, 480), no
         for i in range(frames):
             normals = vertex_normals(vertices[i], anim.faces)
             depth, normal_map, material_map = renderer.render_maps(vertices[i], anim.faces, material, normals)
-            rng = np.random.default_rng([seed, i]) if noise == "kinect" else None
-            color = shade(depth, normal_map, material_map, rng)
-            if rng is not None:
+            # The colour noise has a stream of its own: the depth noise stays what it was before
+            # synth wrote colour.
+            color = shade(depth, normal_map, material_map,
+                          np.random.default_rng([seed, i, 1]) if noise == "kinect" else None)
+            if noise == "kinect":
+                rng = np.random.default_rng([seed, i])
                 depth = kinect_noise(depth, incidence_cosine(normal_map, intr), intr, rng)
             cv2.imwrite(str(out / f"frame-{i:06d}.depth.png"), depth_to_png(depth))
             cv2.imwrite(str(out / f"frame-{i:06d}.color.png"), color[..., ::-1])
