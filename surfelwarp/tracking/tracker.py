@@ -19,9 +19,9 @@ from surfelwarp.geometry.se3 import fit_rigid, invert, transform_points
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.anchors import AnchorParams, NodeAnchors, follow_motion, node_depth_m
 from surfelwarp.tracking.degeneracy import HeldDirections
-from surfelwarp.tracking.features import (AnchoredMatches, FeatureParams, Keyframe, Keypoints, ModelView, combine,
-                                          detect, lift, locally_rigid, match_descriptors, match_frames, on_model_map,
-                                          solved_index)
+from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
+                                          ModelView, checked_pairs, combine, detect, flow_pairs, lift, locally_rigid,
+                                          match_descriptors, match_frames, on_model_map, solved_index)
 from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.gauss_newton import NonRigidParams, NonRigidResult, solve_nonrigid
 from surfelwarp.tracking.rigid_icp import RigidParams, RigidResult, rigid_icp
@@ -130,7 +130,7 @@ class Tracker:
         self._camera_moves = params.camera == "moving"  # this frame: still surface to tell its motion
         self._lu_fallbacks = 0                          # this frame's, over every solve
         self._free_space: tuple[CameraObservation, FreeSpace] | None = None
-        self._previous_features: tuple[Keypoints, np.ndarray, np.ndarray] | None = None   # and its depth
+        self._previous_features: tuple[Keypoints, CameraObservation] | None = None
         self._feature_count: int | None = None
         self._detected: tuple[CameraObservation, Keypoints] | None = None
         self._keyframe: Keyframe | None = None
@@ -223,13 +223,20 @@ class Tracker:
         if obs.color is None or self.params.nonrigid.feature_weight <= 0:
             self._previous_features = None
             return None
+        p = self.params.features
         kp = self._keypoints(obs)
-        previous, self._previous_features = self._previous_features, (kp, obs.vertex_map, obs.valid)
+        previous, self._previous_features = self._previous_features, (kp, obs)
         if model is None:
             return None
         found = [self._keyframe_matches(kp, obs, model, field)] if self._keyframe is not None else []
         if previous is not None:
-            found.append(self._previous_matches(previous, kp, obs, model, field))
+            last_kp, last = previous
+            T = invert(self.T_camera_to_world) @ self._T_previous
+            depth = (last.vertex_map, last.valid, obs.vertex_map, obs.valid, T, p)
+            found.append(self._on_model(match_frames(last_kp, kp, *depth), model, field, 1.0))
+            if p.flow:
+                found.append(self._on_model(checked_pairs(*flow_pairs(last.color, obs.color, last.valid, p), *depth),
+                                            model, field, p.flow_weight))
         if not found:
             return None
         matches = combine(*found)
@@ -254,21 +261,17 @@ class Tracker:
         seen = transform_points(self.T_camera_to_world, q)
         ok &= in_solve & (np.linalg.norm(predicted - seen, axis=1) < p.max_motion_m)
         keep = np.flatnonzero(ok)[locally_rigid(predicted[ok], seen[ok], p)]
-        return AnchoredMatches(solved[keep], kf.points[ia[keep]], q[keep])
+        return AnchoredMatches(solved[keep], kf.points[ia[keep]], q[keep], np.ones(len(keep)))
 
-    def _previous_matches(self, previous, kp: Keypoints, obs: CameraObservation, model: ModelView,
-                          field: WarpField) -> AnchoredMatches:
-        """Last-frame features in `obs`, on the surfels the model map showed at them."""
-        p = self.params.features
-        m = match_frames(previous[0], kp, previous[1], previous[2], obs.vertex_map, obs.valid,
-                         invert(self.T_camera_to_world) @ self._T_previous, p)
+    def _on_model(self, m: FeatureMatches, model: ModelView, field: WarpField, weight: float) -> AnchoredMatches:
+        """Last-frame matches on the surfels the model map showed at them."""
         world = transform_points(self._T_previous, m.previous_points)
-        index, keep = on_model_map(m.previous_pixels, world, model, p.anchor_distance_m)
+        index, keep = on_model_map(m.previous_pixels, world, model, self.params.features.anchor_distance_m)
         solved, in_solve = solved_index(index, model.visible)
         keep &= in_solve
         index = index[keep]
         ref, _ = inverse_warp(world[keep], None, model.knn[index], model.weights[index], field)
-        return AnchoredMatches(solved[keep], ref, m.current_points[keep])
+        return AnchoredMatches(solved[keep], ref, m.current_points[keep], np.full(len(ref), weight))
 
     def nonrigid(self, field: WarpField, surfels: SurfelSet, obs: CameraObservation,
                  matches: AnchoredMatches | None = None) -> tuple[WarpField, NonRigidResult]:

@@ -19,7 +19,8 @@ from surfelwarp.tracking.terms import BaseTerm, Iterate, Problem, register, robu
 class FeatureTerm(BaseTerm):
     def __init__(self, matches: AnchoredMatches, ref_points: np.ndarray, T_camera_to_world: np.ndarray,
                  weight: float, huber_m: float):
-        self.index, self.weight, self.huber_m = np.asarray(matches.index, np.int64), weight, huber_m
+        self.index, self.huber_m = np.asarray(matches.index, np.int64), huber_m
+        self.weight = weight * np.asarray(matches.weights, np.float64)
         self.own = np.ascontiguousarray(np.asarray(matches.ref_points, np.float64).T)       # (3, n)
         # point_blocks reads reference points by surfel: the features' points in their surfels' columns
         self.points = np.array(ref_points, np.float64)
@@ -38,7 +39,7 @@ class FeatureTerm(BaseTerm):
 
     def energy(self, at: Iterate) -> float:
         cost, _ = robust(np.linalg.norm(self.residuals(at), axis=0), "huber", self.huber_m)
-        return self.weight * float(np.sum(cost))
+        return float(np.sum(self.weight * cost))
 
     def linearize(self, at: Iterate, system: NormalEquations) -> float:
         r = self.residuals(at)
@@ -46,7 +47,7 @@ class FeatureTerm(BaseTerm):
         blocks, g = point_blocks(system.pattern, self.rows, at.blends, at.signed, self.points, self.normals,
                                  system.D, r.reshape(-1), np.tile(self.weight * w, 3))
         system.add(g, upper=blocks)
-        return self.weight * float(np.sum(cost))
+        return float(np.sum(self.weight * cost))
 
 
 @register("features")

@@ -18,7 +18,7 @@ SLIDE = np.array([0.006, -0.004, 0.0])       # along the plane: depth cannot see
 
 def matches_on(points: np.ndarray, every: int = 5, offset=SLIDE) -> AnchoredMatches:
     index = np.arange(0, len(points), every)
-    return AnchoredMatches(index, points[index], points[index] + offset)
+    return AnchoredMatches(index, points[index], points[index] + offset, np.ones(len(index)))
 
 
 def test_the_gradient_and_blocks_match_finite_differences():
@@ -28,7 +28,8 @@ def test_the_gradient_and_blocks_match_finite_differences():
     points = model[0]
     # a feature off its surfel (1 mm) and some far beyond the Huber corner (5 cm)
     matches = AnchoredMatches(np.arange(0, len(points), 9), points[::9] + [0.0, 0.001, 0.0],
-                              points[::9] + np.where(np.arange(len(points[::9]))[:, None] % 4 == 0, 0.05, 0.004))
+                              points[::9] + np.where(np.arange(len(points[::9]))[:, None] % 4 == 0, 0.05, 0.004),
+                              np.linspace(0.5, 2.0, len(points[::9])))
     params = replace(NonRigidParams(), terms=("features",), feature_weight=3.0)
     comps = [_components(np.asarray(a, np.float64)) for a in model[:2]]
     solve = Solve(Problem(field, *comps, model[2].astype(np.int64), model[3].astype(np.float64), *depth, params,
