@@ -38,6 +38,7 @@ from surfelwarp.preprocess import CameraObservation
 from surfelwarp.render.mesh_maps import render_mesh_maps
 from surfelwarp.render.solver_maps import maps_to_world
 from surfelwarp.timing import StageTimer
+from surfelwarp.tracking.features import ModelView
 from surfelwarp.tracking.tracker import SurfelSet, Tracker
 
 
@@ -122,7 +123,10 @@ class DynamicFusionMethod:
 
         surfels = self.predicted_points(maps, T_rendered)
         timer.lap("predict")
-        solved, nonrigid = self.tracker.nonrigid(self.field, surfels, obs)
+        # Colour features and flow of the last frame matched into this one, on the points drawn at them.
+        matches = self.tracker.features(obs, self.model_view(maps, T_rendered, surfels), self.field)
+        timer.lap("features")
+        solved, nonrigid = self.tracker.nonrigid(self.field, surfels, obs, matches)
         self.field = self.tracker.factor(solved, nonrigid)
         timer.lap("nonrigid")
 
@@ -176,6 +180,7 @@ class DynamicFusionMethod:
                 self._set_mesh(vertices, normals, faces)
                 self.reference_frame = obs.frame_index
                 self.T_reference_camera_to_world = self.T_camera_to_world.copy()
+                self.tracker.features(obs)       # remembered for the next frame's matches
         timer.lap("initialise")
         return self._record(obs, timer)
 
@@ -198,6 +203,16 @@ class DynamicFusionMethod:
         knn, weights = mesh.knn[vertex], mesh.weights[vertex]
         ref, ref_n = inverse_warp(live, live_n, knn, weights, self.field)
         return SurfelSet(ref, ref_n, knn, weights)
+
+    def model_view(self, maps, T_camera_to_world: np.ndarray, points: SurfelSet) -> ModelView:
+        """The predicted points (predicted_points, in pixel order) as the feature stage reads the
+        model. The mesh is extracted anew each frame, so no point lives on: there are no ids and
+        no reference-frame features, only the last frame's."""
+        hit = maps.index >= 0
+        index_map = np.full(maps.index.shape, -1, np.int64)
+        index_map[hit] = np.arange(int(hit.sum()))
+        live, _ = transform_surfels(T_camera_to_world, maps.vertex[hit], maps.normal[hit])
+        return ModelView(index_map, np.arange(len(live)), live, None, points.knn, points.weights)
 
     def _depth(self, obs: CameraObservation) -> np.ndarray:
         """The depth the tracker used: filtered, only where the observation is valid."""
