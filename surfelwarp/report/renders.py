@@ -19,9 +19,10 @@ def normal_colours(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.where(mask[..., None], 0.5 + 0.5 * n, 1.0)
 
 
-def render_live_normals(ply_path: Path, intrinsics: Intrinsics) -> np.ndarray:
-    """Normal-map colours of a live PLY: a mesh with mesh maps, surfels with solver maps (disks
-    of their radius; a point cloud without radii gets pixel-footprint disks)."""
+def render_live(ply_path: Path, intrinsics: Intrinsics, colour: bool = False) -> np.ndarray:
+    """(H, W, 3) float RGB in [0, 1] of a live PLY from its camera: the normal map, or with
+    `colour` the points' fused red green blue (white where nothing is drawn; the normal map if
+    the PLY has no colour)."""
     from surfelwarp.render.mesh_maps import render_mesh_maps
     from surfelwarp.render.solver_maps import render_solver_maps
 
@@ -34,7 +35,17 @@ def render_live_normals(ply_path: Path, intrinsics: Intrinsics) -> np.ndarray:
         radius = table["radius"].astype(np.float32) if "radius" in table.dtype.names \
             else np.sqrt(2.0) * points[:, 2] / intrinsics.focal_px
         maps = render_solver_maps(points, normals, radius, intrinsics)
-    return normal_colours(maps.normal, maps.index >= 0)
+    drawn = maps.index >= 0
+    if not (colour and "red" in table.dtype.names):
+        return normal_colours(maps.normal, drawn)
+    rgb = stack("red", "green", "blue") / 255.0
+    return np.where(drawn[..., None], rgb[np.maximum(maps.index, 0)], 1.0)
+
+
+def render_live_normals(ply_path: Path, intrinsics: Intrinsics) -> np.ndarray:
+    """Normal-map colours of a live PLY: a mesh with mesh maps, surfels with solver maps (disks
+    of their radius; a point cloud without radii gets pixel-footprint disks)."""
+    return render_live(ply_path, intrinsics)
 
 
 def input_normals(seq, frame: int, params: PreprocessParams) -> np.ndarray | None:
