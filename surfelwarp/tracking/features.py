@@ -186,13 +186,18 @@ def checked_pairs(pa: np.ndarray, pb: np.ndarray, previous_vertex: np.ndarray, p
 class ModelView:
     """The model as the feature stage reads it: `index_map` (H, W) of the surfels drawn at the
     last pose (-1: none), the solved surfels `visible` (sorted), and every surfel's live
-    position (world), unique id (ascending), skinning knn and weights."""
+    position (world), unique id (ascending; None: points do not live on), skinning knn and
+    weights; optionally the drawn points (camera frame at the last pose) and their fused colour
+    (uint8 RGB) where `color_drawn`."""
     index_map: np.ndarray
     visible: np.ndarray
     live_position: np.ndarray
-    ids: np.ndarray
+    ids: np.ndarray | None
     knn: np.ndarray
     weights: np.ndarray
+    vertex_map: np.ndarray | None = None
+    color_map: np.ndarray | None = None
+    color_drawn: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

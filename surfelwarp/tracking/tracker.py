@@ -235,8 +235,7 @@ class Tracker:
             depth = (last.vertex_map, last.valid, obs.vertex_map, obs.valid, T, p)
             found.append(self._on_model(match_frames(last_kp, kp, *depth), model, field, 1.0))
             if p.flow:
-                found.append(self._on_model(checked_pairs(*flow_pairs(last.color, obs.color, last.valid, p), *depth),
-                                            model, field, p.flow_weight))
+                found.append(self._flow_matches(last, obs, model, field, T))
         if not found:
             return None
         matches = combine(*found)
@@ -262,6 +261,22 @@ class Tracker:
         ok &= in_solve & (np.linalg.norm(predicted - seen, axis=1) < p.max_motion_m)
         keep = np.flatnonzero(ok)[locally_rigid(predicted[ok], seen[ok], p)]
         return AnchoredMatches(solved[keep], kf.points[ia[keep]], q[keep], np.ones(len(keep)))
+
+    def _flow_matches(self, last: CameraObservation, obs: CameraObservation, model: ModelView, field: WarpField,
+                      T_last_to_now: np.ndarray) -> AnchoredMatches:
+        """Dense flow into `obs` from the model's fused colour drawn at the last pose: the flow
+        finds where the model's own texture went, so frame-to-frame errors do not add up as
+        they do with flow from the last frame (used where the model has no colour drawn)."""
+        p = self.params.features
+        current = (obs.vertex_map, obs.valid, T_last_to_now, p)
+        if model.color_map is None or model.vertex_map is None or not model.color_drawn.any():
+            pairs = flow_pairs(last.color, obs.color, last.valid, p)
+            return self._on_model(checked_pairs(*pairs, last.vertex_map, last.valid, *current), model, field,
+                                  p.flow_weight)
+        drawn = model.color_drawn
+        source = np.where(drawn[..., None], model.color_map, last.color)
+        pairs = flow_pairs(source, obs.color, drawn, p)
+        return self._on_model(checked_pairs(*pairs, model.vertex_map, drawn, *current), model, field, p.flow_weight)
 
     def _on_model(self, m: FeatureMatches, model: ModelView, field: WarpField, weight: float) -> AnchoredMatches:
         """Last-frame matches on the surfels the model map showed at them."""

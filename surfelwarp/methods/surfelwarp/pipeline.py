@@ -110,8 +110,7 @@ class SurfelWarpMethod:
         surfels = SurfelSet(*(np.take(a, visible, axis=0) for a in (m.ref_position, m.ref_normal, m.knn, m.weights)))
 
         # Colour features of the last frame matched into this one, on the surfels drawn at them.
-        matches = self.tracker.features(obs, ModelView(maps.index, visible, m.live_position, m.ids, m.knn, m.weights),
-                                        self.field)
+        matches = self.tracker.features(obs, self._model_view(maps, visible), self.field)
         timer.lap("features")
         field, nonrigid = self.tracker.nonrigid(self.field, surfels, obs, matches)
         self.field = self.tracker.factor(field, nonrigid)
@@ -223,6 +222,17 @@ class SurfelWarpMethod:
         self.model = m
         self._new_reference(obs)
         return int(drop.sum())
+
+    def _model_view(self, maps, visible: np.ndarray) -> ModelView:
+        """The model as the feature stage reads it, with its fused colour drawn on the solver maps."""
+        m, hit = self.model, maps.index >= 0
+        color = drawn = None
+        if self.has_color:
+            drawn = hit.copy()
+            drawn[hit] = m.color_weight[maps.index[hit]] > 0
+            color = np.zeros(maps.index.shape + (3,), np.uint8)
+            color[drawn] = np.clip(np.rint(m.color[maps.index[drawn]]), 0, 255).astype(np.uint8)
+        return ModelView(maps.index, visible, m.live_position, m.ids, m.knn, m.weights, maps.vertex, color, drawn)
 
     def _new_reference(self, obs: CameraObservation) -> None:
         """Nodes sampled from S_ref with identity transforms, every surfel skinned to them."""
