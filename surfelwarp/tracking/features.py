@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from pykdtree.kdtree import KDTree
+from scipy.spatial import cKDTree
 
 from surfelwarp.geometry.se3 import transform_points
 
@@ -76,25 +76,42 @@ def grey(color: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(np.ascontiguousarray(color, np.uint8), cv2.COLOR_RGB2GRAY)
 
 
+def bounding_box(mask: np.ndarray, margin_px: int = 16) -> tuple[slice, slice]:
+    """Rows and columns around the True pixels (plus a margin): features and flow are computed on
+    that window only, whose area, not the image's, sets their cost (two fingers fill a tenth)."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return slice(0, 0), slice(0, 0)
+    h, w = mask.shape
+    return (slice(max(rows[0] - margin_px, 0), min(rows[-1] + margin_px + 1, h)),
+            slice(max(cols[0] - margin_px, 0), min(cols[-1] + margin_px + 1, w)))
+
+
 def detect(color: np.ndarray, valid: np.ndarray, params: FeatureParams) -> Keypoints:
     """Features of an RGB image where `valid` (depth) holds, away from its edges (a feature on
     a depth edge mixes foreground and background)."""
     mask = cv2.erode(np.asarray(valid, np.uint8), np.ones((5, 5), np.uint8))
+    rows, cols = bounding_box(mask)
+    if rows.stop - rows.start < 16 or cols.stop - cols.start < 16:
+        return Keypoints(np.zeros((0, 2), np.float32), None)
     if params.detector == "sift":
         detector = cv2.SIFT_create(nfeatures=params.max_features, contrastThreshold=params.sift_contrast)
     else:
         detector = cv2.ORB_create(nfeatures=params.max_features)
-    kp, desc = detector.detectAndCompute(grey(color), mask)
-    pixels = np.array([k.pt for k in kp], np.float32).reshape(-1, 2)
-    return Keypoints(pixels, desc)
+    kp, desc = detector.detectAndCompute(np.ascontiguousarray(grey(color)[rows, cols]),
+                                         np.ascontiguousarray(mask[rows, cols]))
+    pixels = np.array([k.pt for k in kp], np.float32).reshape(-1, 2) + [cols.start, rows.start]
+    return Keypoints(pixels.astype(np.float32), desc)
 
 
 def match_descriptors(a: Keypoints, b: Keypoints, params: FeatureParams) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs (ia, ib) that pass the ratio test both ways and pick each other."""
     if a.descriptors is None or b.descriptors is None or len(a.pixels) < 2 or len(b.pixels) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    norm = cv2.NORM_L2 if params.detector == "sift" else cv2.NORM_HAMMING
-    matcher = cv2.BFMatcher(norm)
+    # SIFT: approximate nearest neighbours (FLANN's k-d trees), 5x faster than brute force on
+    # 1600 features a frame; ORB's binary descriptors: brute force Hamming.
+    matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 32}) if params.detector == "sift" \
+        else cv2.BFMatcher(cv2.NORM_HAMMING)
 
     def best(x, y):
         pairs = matcher.knnMatch(x, y, k=2)
@@ -126,7 +143,7 @@ def locally_rigid(previous: np.ndarray, current: np.ndarray, params: FeaturePara
         idx = np.flatnonzero(keep)
         if len(idx) < 2:
             return np.zeros(len(previous), bool)
-        tree = KDTree(previous[idx])
+        tree = cKDTree(previous[idx])     # single-threaded: pykdtree's OpenMP threads wait ~10 ms on a busy core
         dist, nb = tree.query(previous, k=min(k, len(idx)))
         nb = idx[np.minimum(nb, len(idx) - 1)]
         near = (dist < params.rigidity_radius_m) & (nb != np.arange(len(previous))[:, None])
@@ -148,19 +165,26 @@ def match_frames(previous: Keypoints, current: Keypoints, previous_vertex: np.nd
 
 
 def flow_pairs(previous_color: np.ndarray, current_color: np.ndarray, previous_valid: np.ndarray,
-               params: FeatureParams) -> tuple[np.ndarray, np.ndarray]:
+               current_valid: np.ndarray, params: FeatureParams) -> tuple[np.ndarray, np.ndarray]:
     """Pixel pairs (x, y) of dense optical flow (OpenCV's DIS) on a grid of the previous frame's
     depth pixels: dense correspondences where a surface has too little texture for features
     (cloth). No forward-backward check: on the DeepDeform shirt (20 cm of motion) it kept 25 of
-    the 713 good pairs at 8 px; local rigidity (checked_pairs) removes the wrong ones."""
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    forward = dis.calc(grey(previous_color), grey(current_color), None)
-    s = params.flow_stride_px
+    the 713 good pairs at 8 px; local rigidity (checked_pairs) removes the wrong ones. The flow
+    runs on the window around the depth of both frames."""
     valid = cv2.erode(np.asarray(previous_valid, np.uint8), np.ones((5, 5), np.uint8))
-    rows, cols = np.nonzero(valid[s // 2::s, s // 2::s])
-    rows, cols = rows * s + s // 2, cols * s + s // 2
-    pa = np.stack([cols, rows], -1).astype(np.float32)
-    pb = pa + forward[rows, cols]
+    rows, cols = bounding_box(valid | np.asarray(current_valid, bool))
+    if rows.stop - rows.start < 16 or cols.stop - cols.start < 16:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    forward = dis.calc(np.ascontiguousarray(grey(previous_color)[rows, cols]),
+                       np.ascontiguousarray(grey(current_color)[rows, cols]), None)
+    s = params.flow_stride_px
+    r, c = np.nonzero(valid[s // 2::s, s // 2::s])
+    r, c = r * s + s // 2, c * s + s // 2
+    inside = (r >= rows.start) & (r < rows.stop) & (c >= cols.start) & (c < cols.stop)
+    r, c = r[inside], c[inside]
+    pa = np.stack([c, r], -1).astype(np.float32)
+    pb = pa + forward[r - rows.start, c - cols.start]
     h, w = valid.shape
     inside = (pb[:, 0] >= 0) & (pb[:, 0] <= w - 1) & (pb[:, 1] >= 0) & (pb[:, 1] <= h - 1)
     return pa[inside], pb[inside]

@@ -270,12 +270,12 @@ class Tracker:
         p = self.params.features
         current = (obs.vertex_map, obs.valid, T_last_to_now, p)
         if model.color_map is None or model.vertex_map is None or not model.color_drawn.any():
-            pairs = flow_pairs(last.color, obs.color, last.valid, p)
+            pairs = flow_pairs(last.color, obs.color, last.valid, obs.valid, p)
             return self._on_model(checked_pairs(*pairs, last.vertex_map, last.valid, *current), model, field,
                                   p.flow_weight)
         drawn = model.color_drawn
         source = np.where(drawn[..., None], model.color_map, last.color)
-        pairs = flow_pairs(source, obs.color, drawn, p)
+        pairs = flow_pairs(source, obs.color, drawn, obs.valid, p)
         return self._on_model(checked_pairs(*pairs, model.vertex_map, drawn, *current), model, field, p.flow_weight)
 
     def _on_model(self, m: FeatureMatches, model: ModelView, field: WarpField, weight: float) -> AnchoredMatches:

@@ -69,7 +69,7 @@ def test_dense_flow_on_a_known_warp_is_correct():
     rgb, vertex, valid = textured_plane()
     warped, forward = known_warp(rgb, rng)
     params = FeatureParams()
-    pa, pb = flow_pairs(rgb, warped, valid, params)
+    pa, pb = flow_pairs(rgb, warped, valid, valid, params)
     m = checked_pairs(pa, pb, vertex, valid, vertex, valid, np.eye(4), params)
     error = np.linalg.norm(forward(m.previous_pixels.astype(np.float64)) - m.current_pixels, axis=1)
     assert len(m) > 0.8 * (640 // 8) * (480 // 8), len(m)          # the grid, but for the border
