@@ -127,9 +127,25 @@ def match_descriptors(a: Keypoints, b: Keypoints, params: FeatureParams) -> tupl
     return ia[mutual], ib[mutual]
 
 
-def lift(pixels: np.ndarray, vertex_map: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Camera points at the nearest pixel centres, and whether that pixel has depth."""
-    return pixel_values(pixels, vertex_map).astype(np.float64), pixel_values(pixels, valid)
+def lift(pixels: np.ndarray, vertex_map: np.ndarray, valid: np.ndarray,
+         edge_m: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """Camera points at sub-pixel positions (x, y), and whether the nearest pixel has depth: the
+    vertex map interpolated bilinearly where the four pixels around have depth within edge_m of
+    each other, else the nearest pixel's (rounding alone is off by up to half a pixel, ~1 mm at
+    1 m, as much as the depth noise a feature is meant to see past)."""
+    h, w = valid.shape
+    x = np.clip(np.asarray(pixels[:, 0], np.float64), 0, w - 1.0001)
+    y = np.clip(np.asarray(pixels[:, 1], np.float64), 0, h - 1.0001)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    v = vertex_map.astype(np.float64)
+    corners = [v[y0, x0], v[y0, x0 + 1], v[y0 + 1, x0], v[y0 + 1, x0 + 1]]
+    z = np.stack([c[:, 2] for c in corners], -1)
+    smooth = valid[y0, x0] & valid[y0, x0 + 1] & valid[y0 + 1, x0] & valid[y0 + 1, x0 + 1] & \
+        (z.max(axis=1) - z.min(axis=1) < edge_m)
+    bilinear = (corners[0] * (1 - fx) + corners[1] * fx) * (1 - fy) + (corners[2] * (1 - fx) + corners[3] * fx) * fy
+    nearest = pixel_values(pixels, vertex_map).astype(np.float64)
+    return np.where(smooth[:, None], bilinear, nearest), pixel_values(pixels, valid)
 
 
 def locally_rigid(previous: np.ndarray, current: np.ndarray, params: FeatureParams) -> np.ndarray:
@@ -164,38 +180,79 @@ def match_frames(previous: Keypoints, current: Keypoints, previous_vertex: np.nd
                          current_valid, T_previous_to_current, params)
 
 
+def grid_pixels(mask: np.ndarray, stride_px: int) -> np.ndarray:
+    """(n, 2) float32 pixel centres (x, y) of a stride_px grid where `mask` holds, away from its
+    edges (flow there mixes the surface with what is behind it)."""
+    inner = cv2.erode(np.asarray(mask, np.uint8), np.ones((5, 5), np.uint8))
+    s = stride_px
+    rows, cols = np.nonzero(inner[s // 2::s, s // 2::s])
+    return np.stack([cols * s + s // 2, rows * s + s // 2], -1).astype(np.float32)
+
+
+def flow_at(previous_color: np.ndarray, current_color: np.ndarray, window: np.ndarray,
+            pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Dense optical flow (OpenCV's DIS) from the previous to the current image, computed on the
+    box around `window` and read bilinearly at sub-pixel `pixels` (x, y): (where they go, whether
+    they are inside the box). No forward-backward check: on the DeepDeform shirt (20 cm of
+    motion) it kept 25 of the 713 good pairs at 8 px; local rigidity (checked_pairs) removes the
+    wrong ones."""
+    rows, cols = bounding_box(np.asarray(window, bool))
+    h, w = rows.stop - rows.start, cols.stop - cols.start
+    inside = np.zeros(len(pixels), bool)
+    if h < 16 or w < 16 or len(pixels) == 0:
+        return pixels.copy(), inside
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    flow = dis.calc(np.ascontiguousarray(grey(previous_color)[rows, cols]),
+                    np.ascontiguousarray(grey(current_color)[rows, cols]), None)
+    local = pixels - np.float32([cols.start, rows.start])
+    inside = (local[:, 0] >= 0) & (local[:, 0] <= w - 1) & (local[:, 1] >= 0) & (local[:, 1] <= h - 1)
+    maps = np.ascontiguousarray(local.reshape(-1, 1, 2), np.float32)
+    moved = cv2.remap(flow, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    target = pixels + moved.reshape(-1, 2)
+    full_h, full_w = window.shape
+    inside &= (target[:, 0] >= 0) & (target[:, 0] <= full_w - 1) & (target[:, 1] >= 0) & (target[:, 1] <= full_h - 1)
+    return target, inside
+
+
+def mean_draw_offset(vertex_map: np.ndarray, drawn: np.ndarray, intrinsics, window_px: int = 9) -> np.ndarray:
+    """(H, W, 2) float32: the mean, over a window_px box, of pixel minus the projection of the
+    point drawn there (x, y), where `drawn`."""
+    h, w = drawn.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    z = np.where(drawn, vertex_map[..., 2], 1.0)
+    offset = np.stack([u - (intrinsics.fx * vertex_map[..., 0] / z + intrinsics.cx),
+                       v - (intrinsics.fy * vertex_map[..., 1] / z + intrinsics.cy)], -1)
+    weight = drawn.astype(np.float32)
+    offset = np.where(drawn[..., None], offset, 0.0).astype(np.float32)
+    box = (window_px, window_px)
+    count = cv2.boxFilter(weight, -1, box, normalize=False)
+    total = cv2.boxFilter(offset, -1, box, normalize=False)
+    return total / np.maximum(count, 1.0)[..., None]
+
+
 def flow_pairs(previous_color: np.ndarray, current_color: np.ndarray, previous_valid: np.ndarray,
                current_valid: np.ndarray, params: FeatureParams) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel pairs (x, y) of dense optical flow (OpenCV's DIS) on a grid of the previous frame's
-    depth pixels: dense correspondences where a surface has too little texture for features
-    (cloth). No forward-backward check: on the DeepDeform shirt (20 cm of motion) it kept 25 of
-    the 713 good pairs at 8 px; local rigidity (checked_pairs) removes the wrong ones. The flow
-    runs on the window around the depth of both frames."""
-    valid = cv2.erode(np.asarray(previous_valid, np.uint8), np.ones((5, 5), np.uint8))
-    rows, cols = bounding_box(valid | np.asarray(current_valid, bool))
-    if rows.stop - rows.start < 16 or cols.stop - cols.start < 16:
-        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    forward = dis.calc(np.ascontiguousarray(grey(previous_color)[rows, cols]),
-                       np.ascontiguousarray(grey(current_color)[rows, cols]), None)
-    s = params.flow_stride_px
-    r, c = np.nonzero(valid[s // 2::s, s // 2::s])
-    r, c = r * s + s // 2, c * s + s // 2
-    inside = (r >= rows.start) & (r < rows.stop) & (c >= cols.start) & (c < cols.stop)
-    r, c = r[inside], c[inside]
-    pa = np.stack([c, r], -1).astype(np.float32)
-    pb = pa + forward[r - rows.start, c - cols.start]
-    h, w = valid.shape
-    inside = (pb[:, 0] >= 0) & (pb[:, 0] <= w - 1) & (pb[:, 1] >= 0) & (pb[:, 1] <= h - 1)
+    """Pixel pairs (x, y) of dense flow on a grid of the previous frame's depth pixels: dense
+    correspondences where a surface has too little texture for features (cloth)."""
+    pa = grid_pixels(previous_valid, params.flow_stride_px)
+    pb, inside = flow_at(previous_color, current_color, np.asarray(previous_valid, bool) | current_valid, pa)
     return pa[inside], pb[inside]
 
 
 def checked_pairs(pa: np.ndarray, pb: np.ndarray, previous_vertex: np.ndarray, previous_valid: np.ndarray,
                   current_vertex: np.ndarray, current_valid: np.ndarray, T_previous_to_current: np.ndarray,
                   params: FeatureParams) -> FeatureMatches:
-    """Pixel pairs lifted to 3-D with depth at both ends, then the motion bound (in the current
-    camera, the previous points moved by the camera's motion) and local rigidity."""
+    """Pixel pairs lifted to 3-D with depth at both ends (checked_points)."""
     qa, ok_a = lift(pa, previous_vertex, previous_valid)
+    return checked_points(pa, pb, qa, ok_a, current_vertex, current_valid, T_previous_to_current, params)
+
+
+def checked_points(pa: np.ndarray, pb: np.ndarray, qa: np.ndarray, ok_a: np.ndarray, current_vertex: np.ndarray,
+                   current_valid: np.ndarray, T_previous_to_current: np.ndarray, params: FeatureParams
+                   ) -> FeatureMatches:
+    """Previous points qa (camera) seen at pa paired with the current depth at pb, then the
+    motion bound (in the current camera, the previous points moved by the camera's motion) and
+    local rigidity."""
     qb, ok_b = lift(pb, current_vertex, current_valid)
     ok = ok_a & ok_b
     qa_now = transform_points(T_previous_to_current, qa)

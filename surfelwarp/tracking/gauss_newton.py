@@ -64,6 +64,8 @@ class NonRigidParams:
                                        # sharp (measured on twist-limb, moving EPE at frame 10:
                                        # 27.7 mm without, 11.8 at 10, 7.9 at 100); 0: off
     feature_huber_m: float = 0.01      # its Huber corner
+    feature_normal_share: float = 0.1  # its weight along the surface normal, where depth is the
+                                       # better judge, against along the surface (1: a distance)
     free_rings: int | None = 2         # nodes more than this many graph edges from every node
                                        # skinning a solved (visible) surfel are held fixed
                                        # (None: none are). Out of view they only carry the
