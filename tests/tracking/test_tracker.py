@@ -74,14 +74,16 @@ def test_camera_orbit_gives_the_trajectory(tmp_path):
 
 @pytest.mark.slow
 def test_deepdeform_shirt_large_motion(tmp_path):
-    """Frames 0 -> 110: a motion of ~23 cm, a known hard case for projective trackers. The
-    tracker must at least move the template towards the truth (EPE below standing still)."""
+    """Frames 0 -> 110: a motion of ~23 cm, a known hard case for projective trackers. With
+    depth alone the template moves only part of the way (170 mm against 231 mm standing
+    still); the colour's dense flow takes it most of the way (16 mm measured; Neural Non-Rigid
+    Tracking reports 26 mm on the DeepDeform test pairs)."""
     data = shared_data("deepdeform-shirt-pair")
     out = tmp_path / "shirt"
     assert main(["run", str(data), "--out", str(out), "--method", "surfelwarp", "--no-fusion", "--no-progress"]) == 0
     row = evaluate.evaluate(out, data)["frames"][0]
     assert row["points"] > 30000
-    assert row["epe_mean_mm"] < 0.95 * row["zero_motion_epe_mm"]
+    assert row["epe_mean_mm"] < 30.0 and row["epe_median_mm"] < 20.0, row
 
 
 def test_factoring_fits_the_common_motion_to_the_supported_nodes():
