@@ -53,8 +53,9 @@ def evaluate_runs(out: Path, seq_dir: Path) -> dict[str, dict] | None:
 INPUT_STAGES = ("read", "preprocess")
 
 
-# Tracking: the shared rigid ICP and Gauss-Newton, and each method's model maps and data points.
-TRACKER_STAGES = ("solver_maps", "rigid", "predict", "nonrigid")
+# Tracking: the shared rigid ICP, colour correspondences and Gauss-Newton, and each method's
+# model maps and data points.
+TRACKER_STAGES = ("solver_maps", "rigid", "predict", "features", "nonrigid")
 
 
 def speed(metrics: dict[str, dict]) -> dict:
