@@ -27,7 +27,9 @@ class FeatureParams:
     max_features: int = 2000
     sift_contrast: float = 0.04         # SIFT's contrast threshold (OpenCV's default)
     ratio: float = 0.8                  # Lowe's test: best distance below this share of the second
-    max_motion_m: float = 0.3           # a feature moving farther between two frames is an outlier
+    max_motion_m: float = 0.3           # a feature moving farther between two frames is an outlier,
+    motion_spread: float = 3.0          # and one farther than this times the median distance from
+    motion_floor_m: float = 0.02        # the prediction (at least this)
     rigidity_radius_m: float = 0.06     # neighbours whose distance is compared
     rigidity_tolerance: float = 0.1     # a distance may change by this share of itself ...
     rigidity_floor_m: float = 0.006     # ... or by this much (depth noise, pixel rounding)
@@ -247,6 +249,16 @@ def checked_pairs(pa: np.ndarray, pb: np.ndarray, previous_vertex: np.ndarray, p
     return checked_points(pa, pb, qa, ok_a, current_vertex, current_valid, T_previous_to_current, params)
 
 
+def near_prediction(deviation: np.ndarray, candidate: np.ndarray, params: FeatureParams) -> np.ndarray:
+    """Pairs whose distance from the predicted position is below max_motion_m and below
+    motion_spread times the candidates' median (at least motion_floor_m): a group of wrong
+    pairs that agree among themselves passes the local rigidity test, not this one, unless the
+    whole view moved that far (the shirt pair: every pair ~20 cm from the prediction)."""
+    typical = np.median(deviation[candidate]) if candidate.any() else 0.0
+    bound = min(params.max_motion_m, max(params.motion_floor_m, params.motion_spread * typical))
+    return deviation < bound
+
+
 def checked_points(pa: np.ndarray, pb: np.ndarray, qa: np.ndarray, ok_a: np.ndarray, current_vertex: np.ndarray,
                    current_valid: np.ndarray, T_previous_to_current: np.ndarray, params: FeatureParams
                    ) -> FeatureMatches:
@@ -256,7 +268,7 @@ def checked_points(pa: np.ndarray, pb: np.ndarray, qa: np.ndarray, ok_a: np.ndar
     qb, ok_b = lift(pb, current_vertex, current_valid)
     ok = ok_a & ok_b
     qa_now = transform_points(T_previous_to_current, qa)
-    ok &= np.linalg.norm(qb - qa_now, axis=1) < params.max_motion_m
+    ok &= near_prediction(np.linalg.norm(qb - qa_now, axis=1), ok, params)
     matches = FeatureMatches(pa[ok], pb[ok], qa[ok], qb[ok], candidates=len(pa))
     if len(matches) == 0:
         return matches

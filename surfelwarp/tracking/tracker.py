@@ -21,7 +21,7 @@ from surfelwarp.tracking.anchors import AnchorParams, NodeAnchors, follow_motion
 from surfelwarp.tracking.degeneracy import HeldDirections
 from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
                                           ModelView, checked_pairs, checked_points, combine, detect, flow_at, flow_pairs,
-                                          grid_pixels, lift, locally_rigid, mean_draw_offset,
+                                          grid_pixels, lift, locally_rigid, mean_draw_offset, near_prediction,
                                           match_descriptors, match_frames, on_model_map, solved_index)
 from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.gauss_newton import NonRigidParams, NonRigidResult, solve_nonrigid
@@ -259,7 +259,8 @@ class Tracker:
         drawn, ok = on_model_map(pixels, predicted, model, p.anchor_distance_m)
         solved, in_solve = solved_index(drawn, model.visible)
         seen = transform_points(self.T_camera_to_world, q)
-        ok &= in_solve & (np.linalg.norm(predicted - seen, axis=1) < p.max_motion_m)
+        ok &= in_solve
+        ok &= near_prediction(np.linalg.norm(predicted - seen, axis=1), ok, p)
         keep = np.flatnonzero(ok)[locally_rigid(predicted[ok], seen[ok], p)]
         return AnchoredMatches(solved[keep], kf.points[ia[keep]], q[keep], np.ones(len(keep)))
 
