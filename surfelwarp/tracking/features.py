@@ -316,7 +316,9 @@ class AnchoredMatches:
 
 def combine(*sets: AnchoredMatches) -> AnchoredMatches:
     """The sets' matches, one a surfel (the first set's first): the feature term reads a
-    feature's reference point in its surfel's place."""
+    feature's reference point in its surfel's place. No sets: no matches."""
+    if not sets:
+        return AnchoredMatches(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
     index = np.concatenate([m.index for m in sets])
     first = np.unique(index, return_index=True)[1]
     return AnchoredMatches(index[first], np.concatenate([m.ref_points for m in sets])[first],

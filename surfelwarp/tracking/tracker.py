@@ -247,6 +247,8 @@ class Tracker:
                           field: WarpField) -> AnchoredMatches:
         """Reference features in `obs`, checked against where the last frame's warp takes them."""
         p, kf = self.params.features, self._keyframe
+        if len(model.ids) == 0:
+            return combine()
         ia, ib = match_descriptors(kf.keypoints, kp, p)
         q, ok = lift(kp.pixels[ib], obs.vertex_map, obs.valid)
         index = np.minimum(np.searchsorted(model.ids, kf.ids[ia]), max(len(model.ids) - 1, 0))

@@ -106,3 +106,15 @@ def test_a_motion_beyond_the_bound_is_dropped():
     assert len(match_frames(kp, kp, vertex, valid, vertex, valid, np.eye(4), params)) > 100
     assert len(match_frames(kp, kp, vertex, valid, vertex, valid, far, params)) == 0
     assert len(match_frames(kp, kp, vertex, valid, vertex, valid, far, replace(params, max_motion_m=0.6))) > 100
+
+
+def test_combine_keeps_one_match_a_surfel_the_first_sets():
+    from surfelwarp.tracking.features import AnchoredMatches, combine
+
+    a = AnchoredMatches(np.array([3, 5]), np.ones((2, 3)), np.zeros((2, 3)), np.ones(2))
+    b = AnchoredMatches(np.array([5, 7]), 2 * np.ones((2, 3)), np.zeros((2, 3)), np.full(2, 0.5))
+    m = combine(a, b)
+    np.testing.assert_array_equal(m.index, [3, 5, 7])
+    np.testing.assert_array_equal(m.ref_points[:, 0], [1, 1, 2])       # surfel 5 from the first set
+    np.testing.assert_array_equal(m.weights, [1, 1, 0.5])
+    assert len(combine()) == 0
