@@ -10,19 +10,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
 from surfelwarp.deform.hierarchy import Hierarchy, HierarchyParams, build_hierarchy, with_hierarchy
-from surfelwarp.deform.warp_field import WarpField, inverse_warp, to_local, warp
+from surfelwarp.deform.warp_field import WarpField, to_local
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.geometry.se3 import fit_rigid, invert, transform_points
+from surfelwarp.geometry.se3 import fit_rigid, invert
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.anchors import AnchorParams, NodeAnchors, follow_motion, node_depth_m
 from surfelwarp.tracking.degeneracy import HeldDirections
-from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
-                                          ModelView, checked_pairs, checked_points, combine, detect, flow_at, flow_pairs,
-                                          grid_pixels, lift, locally_rigid, mean_draw_offset, near_prediction,
-                                          match_descriptors, match_frames, on_model_map, solved_index)
+from surfelwarp.tracking.colour import ColourMatcher
+from surfelwarp.tracking.features import AnchoredMatches, FeatureParams, ModelView
 from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.gauss_newton import NonRigidParams, NonRigidResult, solve_nonrigid
 from surfelwarp.tracking.rigid_icp import RigidParams, RigidResult, rigid_icp
@@ -131,10 +128,8 @@ class Tracker:
         self._camera_moves = params.camera == "moving"  # this frame: still surface to tell its motion
         self._lu_fallbacks = 0                          # this frame's, over every solve
         self._free_space: tuple[CameraObservation, FreeSpace] | None = None
-        self._previous_features: tuple[Keypoints, CameraObservation] | None = None
+        self.colour = ColourMatcher(intrinsics, params.features)
         self._feature_count: int | None = None
-        self._detected: tuple[CameraObservation, Keypoints] | None = None
-        self._keyframe: Keyframe | None = None
 
     def free_space(self, obs: CameraObservation, T_camera_to_world: np.ndarray) -> FreeSpace:
         """The observation's free space seen from T_camera_to_world, built once per observation
@@ -191,116 +186,23 @@ class Tracker:
             self._T_guess = self.T_camera_to_world
         return result
 
-    def _keypoints(self, obs: CameraObservation) -> Keypoints:
-        """The observation's features, detected once."""
-        if self._detected is None or self._detected[0] is not obs:
-            self._detected = obs, detect(obs.color, obs.valid, self.params.features)
-        return self._detected[1]
-
     def new_reference(self, obs: CameraObservation, ids: np.ndarray, ref_position: np.ndarray) -> None:
-        """Keep the reference frame's features, each on the reference surfel (world) at its
-        depth point: matched into every later frame, they stop frame-to-frame drift adding up.
-        Call with each new reference (the first frame, every reinitialisation)."""
-        self._keyframe = None
-        if obs.color is None or self.params.nonrigid.feature_weight <= 0 or len(ref_position) == 0:
-            return
-        kp = self._keypoints(obs)
-        q, ok = lift(kp.pixels, obs.vertex_map, obs.valid)
-        world = transform_points(self.T_camera_to_world, q[ok])
-        if len(world) == 0 or kp.descriptors is None:
-            return
-        d, j = KDTree(np.asarray(ref_position, np.float64)).query(world)
-        near = d < self.params.features.anchor_distance_m
-        self._keyframe = Keyframe(Keypoints(kp.pixels[ok][near], kp.descriptors[ok][near]), world[near],
-                                  np.asarray(ids)[j[near]])
+        """The reference frame's colour features on the reference model (colour.py); call with
+        each new reference (the first frame, every reinitialisation)."""
+        if self.params.nonrigid.feature_weight > 0:
+            self.colour.new_reference(obs, self.T_camera_to_world, ids, ref_position)
 
     def features(self, obs: CameraObservation, model: ModelView | None = None,
                  field: WarpField | None = None) -> AnchoredMatches | None:
-        """Colour features of `obs` matched with the reference frame's and the last frame's, on
-        the surfels the solve uses (`field`: the warp at the last frame). Call after `rigid`.
-        Remembers obs's features for the next frame; with no model (the first frame) that is all.
-        None without colour."""
+        """Colour correspondences of `obs` on the solved surfels (colour.py), at the pose rigid
+        ICP found; call after `rigid`. With no model (the first frame) it only remembers obs.
+        None without colour or with the feature term off."""
         self._feature_count = None
-        if obs.color is None or self.params.nonrigid.feature_weight <= 0:
-            self._previous_features = None
+        if self.params.nonrigid.feature_weight <= 0:
             return None
-        p = self.params.features
-        kp = self._keypoints(obs)
-        previous, self._previous_features = self._previous_features, (kp, obs)
-        if model is None:
-            return None
-        found = [self._keyframe_matches(kp, obs, model, field)] if self._keyframe is not None else []
-        if previous is not None:
-            last_kp, last = previous
-            T = invert(self.T_camera_to_world) @ self._T_previous
-            depth = (last.vertex_map, last.valid, obs.vertex_map, obs.valid, T, p)
-            found.append(self._on_model(match_frames(last_kp, kp, *depth), model, field, 1.0))
-            if p.flow:
-                found.append(self._flow_matches(last, obs, model, field, T))
-        if not found:
-            return None
-        matches = combine(*found)
-        self._feature_count = len(matches)
+        matches = self.colour.matches(obs, model, field, self._T_previous, self.T_camera_to_world)
+        self._feature_count = None if matches is None else len(matches)
         return matches
-
-    def _keyframe_matches(self, kp: Keypoints, obs: CameraObservation, model: ModelView,
-                          field: WarpField) -> AnchoredMatches:
-        """Reference features in `obs`, checked against where the last frame's warp takes them."""
-        p, kf = self.params.features, self._keyframe
-        if len(model.ids) == 0:
-            return combine()
-        ia, ib = match_descriptors(kf.keypoints, kp, p)
-        q, ok = lift(kp.pixels[ib], obs.vertex_map, obs.valid)
-        index = np.minimum(np.searchsorted(model.ids, kf.ids[ia]), max(len(model.ids) - 1, 0))
-        ok &= model.ids[index] == kf.ids[ia]          # surfels removed since are gone
-        ia, q, index = ia[ok], q[ok], index[ok]
-        predicted, _ = warp(kf.points[ia], None, model.knn[index], model.weights[index], field)
-        # The solve's surfels are those the model map shows, one a pixel: the feature goes on
-        # the one drawn where the last frame's warp puts it (its neighbour, skinned alike).
-        pixels = self.intrinsics.project(transform_points(invert(self._T_previous), predicted))
-        drawn, ok = on_model_map(pixels, predicted, model, p.anchor_distance_m)
-        solved, in_solve = solved_index(drawn, model.visible)
-        seen = transform_points(self.T_camera_to_world, q)
-        ok &= in_solve
-        ok &= near_prediction(np.linalg.norm(predicted - seen, axis=1), ok, p)
-        keep = np.flatnonzero(ok)[locally_rigid(predicted[ok], seen[ok], p)]
-        return AnchoredMatches(solved[keep], kf.points[ia[keep]], q[keep], np.ones(len(keep)))
-
-    def _flow_matches(self, last: CameraObservation, obs: CameraObservation, model: ModelView, field: WarpField,
-                      T_last_to_now: np.ndarray) -> AnchoredMatches:
-        """Dense flow into `obs` from the model's fused colour drawn at the last pose: the flow
-        finds where the model's own texture went, so frame-to-frame errors do not add up as
-        they do with flow from the last frame (used where the model has no colour drawn)."""
-        p = self.params.features
-        current = (obs.vertex_map, obs.valid, T_last_to_now, p)
-        if model.color_map is None or model.vertex_map is None or not model.color_drawn.any():
-            pairs = flow_pairs(last.color, obs.color, last.valid, obs.valid, p)
-            return self._on_model(checked_pairs(*pairs, last.vertex_map, last.valid, *current), model, field,
-                                  p.flow_weight)
-        # Each drawn colour is its surfel's, whose centre lies up to a pixel off the pixel that
-        # shows it, by an offset that the splats' overlap sets and that is biased one way: the
-        # flow of the drawn colours is the motion less that offset's local mean. So the flow is
-        # read where each centre projects and the local mean offset added back (read at the
-        # pixel instead, the pairs carry ~3 mm of noise at 1.3 m; without the mean, a 2 mm bias).
-        drawn = model.color_drawn
-        source = np.where(drawn[..., None], model.color_map, last.color)
-        grid = grid_pixels(drawn, p.flow_stride_px).astype(np.int64)
-        centres = model.vertex_map[grid[:, 1], grid[:, 0]].astype(np.float64)
-        pa = self.intrinsics.project(centres).astype(np.float32)
-        pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa)
-        pb += mean_draw_offset(model.vertex_map, drawn, self.intrinsics)[grid[:, 1], grid[:, 0]]
-        m = checked_points(pa[inside], pb[inside], centres[inside], np.ones(int(inside.sum()), bool), *current)
-        return self._on_model(m, model, field, p.flow_weight)
-
-    def _on_model(self, m: FeatureMatches, model: ModelView, field: WarpField, weight: float) -> AnchoredMatches:
-        """Last-frame matches on the surfels the model map showed at them."""
-        world = transform_points(self._T_previous, m.previous_points)
-        index, keep = on_model_map(m.previous_pixels, world, model, self.params.features.anchor_distance_m)
-        solved, in_solve = solved_index(index, model.visible)
-        keep &= in_solve
-        index = index[keep]
-        ref, _ = inverse_warp(world[keep], None, model.knn[index], model.weights[index], field)
-        return AnchoredMatches(solved[keep], ref, m.current_points[keep], np.full(len(ref), weight))
 
     def nonrigid(self, field: WarpField, surfels: SurfelSet, obs: CameraObservation,
                  matches: AnchoredMatches | None = None) -> tuple[WarpField, NonRigidResult]:

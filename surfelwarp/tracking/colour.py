@@ -1,0 +1,145 @@
+"""The tracker's colour correspondences: features and dense flow, put on the model.
+
+Each frame's SIFT (or ORB) features are matched with the reference frame's (drift-free while
+they still match; new with every reference) and the last frame's, and dense optical flow runs
+from the model's fused colour drawn at the last pose into the frame; every pair is lifted to 3-D
+with depth and checked (features.py), then put on a surfel the solve uses with its reference
+point. terms/features.py adds them to the non-rigid solve.
+"""
+from __future__ import annotations
+
+import numpy as np
+from pykdtree.kdtree import KDTree
+
+from surfelwarp.deform.warp_field import WarpField, inverse_warp, warp
+from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.geometry.se3 import invert, transform_points
+from surfelwarp.preprocess import CameraObservation
+from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
+                                          ModelView, checked_pairs, checked_points, combine, detect, flow_at,
+                                          flow_pairs, grid_pixels, lift, locally_rigid, match_descriptors,
+                                          match_frames, mean_draw_offset, near_prediction, on_model_map,
+                                          solved_index)
+
+
+class ColourMatcher:
+    """Colour correspondences from frame to frame; holds the reference frame's features, the
+    last observation's and, during `matches`, the frame's poses."""
+
+    def __init__(self, intrinsics: Intrinsics, params: FeatureParams = FeatureParams()):
+        self.intrinsics, self.params = intrinsics, params
+        self._previous_features: tuple[Keypoints, CameraObservation] | None = None
+        self._detected: tuple[CameraObservation, Keypoints] | None = None
+        self._keyframe: Keyframe | None = None
+        self._T_previous = self.T_camera_to_world = np.eye(4)
+
+    def _keypoints(self, obs: CameraObservation) -> Keypoints:
+        """The observation's features, detected once."""
+        if self._detected is None or self._detected[0] is not obs:
+            self._detected = obs, detect(obs.color, obs.valid, self.params)
+        return self._detected[1]
+
+    def new_reference(self, obs: CameraObservation, T_camera_to_world: np.ndarray, ids: np.ndarray,
+                      ref_position: np.ndarray) -> None:
+        """Keep the reference frame's features, each on the reference surfel (world) at its
+        depth point: matched into every later frame, they stop frame-to-frame drift adding up.
+        Call with each new reference (the first frame, every reinitialisation)."""
+        self._keyframe = None
+        if obs.color is None or len(ref_position) == 0:
+            return
+        kp = self._keypoints(obs)
+        q, ok = lift(kp.pixels, obs.vertex_map, obs.valid)
+        world = transform_points(T_camera_to_world, q[ok])
+        if len(world) == 0 or kp.descriptors is None:
+            return
+        d, j = KDTree(np.asarray(ref_position, np.float64)).query(world)
+        near = d < self.params.anchor_distance_m
+        self._keyframe = Keyframe(Keypoints(kp.pixels[ok][near], kp.descriptors[ok][near]), world[near],
+                                  np.asarray(ids)[j[near]])
+
+    def matches(self, obs: CameraObservation, model: ModelView | None, field: WarpField | None,
+                T_previous: np.ndarray, T_camera_to_world: np.ndarray) -> AnchoredMatches | None:
+        """Colour correspondences of `obs` with the reference frame's and the last frame's, on
+        the surfels the solve uses (`field`: the warp at the last frame; T_previous the last
+        frame's pose, T_camera_to_world this one's after rigid ICP). Remembers obs for the next
+        frame; with no model (the first frame) that is all. None without colour."""
+        if obs.color is None:
+            self._previous_features = None
+            return None
+        self._T_previous, self.T_camera_to_world = T_previous, T_camera_to_world
+        p = self.params
+        kp = self._keypoints(obs)
+        previous, self._previous_features = self._previous_features, (kp, obs)
+        if model is None:
+            return None
+        found = [self._keyframe_matches(kp, obs, model, field)] if self._keyframe is not None else []
+        if previous is not None:
+            last_kp, last = previous
+            T = invert(self.T_camera_to_world) @ self._T_previous
+            depth = (last.vertex_map, last.valid, obs.vertex_map, obs.valid, T, p)
+            found.append(self._on_model(match_frames(last_kp, kp, *depth), model, field, 1.0))
+            if p.flow:
+                found.append(self._flow_matches(last, obs, model, field, T))
+        if not found:
+            return None
+        matches = combine(*found)
+        return matches
+
+    def _keyframe_matches(self, kp: Keypoints, obs: CameraObservation, model: ModelView,
+                          field: WarpField) -> AnchoredMatches:
+        """Reference features in `obs`, checked against where the last frame's warp takes them."""
+        p, kf = self.params, self._keyframe
+        if len(model.ids) == 0:
+            return combine()
+        ia, ib = match_descriptors(kf.keypoints, kp, p)
+        q, ok = lift(kp.pixels[ib], obs.vertex_map, obs.valid)
+        index = np.minimum(np.searchsorted(model.ids, kf.ids[ia]), max(len(model.ids) - 1, 0))
+        ok &= model.ids[index] == kf.ids[ia]          # surfels removed since are gone
+        ia, q, index = ia[ok], q[ok], index[ok]
+        predicted, _ = warp(kf.points[ia], None, model.knn[index], model.weights[index], field)
+        # The solve's surfels are those the model map shows, one a pixel: the feature goes on
+        # the one drawn where the last frame's warp puts it (its neighbour, skinned alike).
+        pixels = self.intrinsics.project(transform_points(invert(self._T_previous), predicted))
+        drawn, ok = on_model_map(pixels, predicted, model, p.anchor_distance_m)
+        solved, in_solve = solved_index(drawn, model.visible)
+        seen = transform_points(self.T_camera_to_world, q)
+        ok &= in_solve
+        ok &= near_prediction(np.linalg.norm(predicted - seen, axis=1), ok, p)
+        keep = np.flatnonzero(ok)[locally_rigid(predicted[ok], seen[ok], p)]
+        return AnchoredMatches(solved[keep], kf.points[ia[keep]], q[keep], np.ones(len(keep)))
+
+    def _flow_matches(self, last: CameraObservation, obs: CameraObservation, model: ModelView, field: WarpField,
+                      T_last_to_now: np.ndarray) -> AnchoredMatches:
+        """Dense flow into `obs` from the model's fused colour drawn at the last pose: the flow
+        finds where the model's own texture went, so frame-to-frame errors do not add up as
+        they do with flow from the last frame (used where the model has no colour drawn)."""
+        p = self.params
+        current = (obs.vertex_map, obs.valid, T_last_to_now, p)
+        if model.color_map is None or model.vertex_map is None or not model.color_drawn.any():
+            pairs = flow_pairs(last.color, obs.color, last.valid, obs.valid, p)
+            return self._on_model(checked_pairs(*pairs, last.vertex_map, last.valid, *current), model, field,
+                                  p.flow_weight)
+        # Each drawn colour is its surfel's, whose centre lies up to a pixel off the pixel that
+        # shows it, by an offset that the splats' overlap sets and that is biased one way: the
+        # flow of the drawn colours is the motion less that offset's local mean. So the flow is
+        # read where each centre projects and the local mean offset added back (read at the
+        # pixel instead, the pairs carry ~3 mm of noise at 1.3 m; without the mean, a 2 mm bias).
+        drawn = model.color_drawn
+        source = np.where(drawn[..., None], model.color_map, last.color)
+        grid = grid_pixels(drawn, p.flow_stride_px).astype(np.int64)
+        centres = model.vertex_map[grid[:, 1], grid[:, 0]].astype(np.float64)
+        pa = self.intrinsics.project(centres).astype(np.float32)
+        pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa)
+        pb += mean_draw_offset(model.vertex_map, drawn, self.intrinsics)[grid[:, 1], grid[:, 0]]
+        m = checked_points(pa[inside], pb[inside], centres[inside], np.ones(int(inside.sum()), bool), *current)
+        return self._on_model(m, model, field, p.flow_weight)
+
+    def _on_model(self, m: FeatureMatches, model: ModelView, field: WarpField, weight: float) -> AnchoredMatches:
+        """Last-frame matches on the surfels the model map showed at them."""
+        world = transform_points(self._T_previous, m.previous_points)
+        index, keep = on_model_map(m.previous_pixels, world, model, self.params.anchor_distance_m)
+        solved, in_solve = solved_index(index, model.visible)
+        keep &= in_solve
+        index = index[keep]
+        ref, _ = inverse_warp(world[keep], None, model.knn[index], model.weights[index], field)
+        return AnchoredMatches(solved[keep], ref, m.current_points[keep], np.full(len(ref), weight))
