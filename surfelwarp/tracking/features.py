@@ -1,12 +1,14 @@
-"""Sparse colour correspondences between two frames, lifted to 3-D and cleaned of outliers.
+"""Colour correspondences between two images, lifted to 3-D and cleaned of outliers.
 
 Depth cannot see motion along a surface (SurfelWarp Fig. 9b); colour can. Features (SIFT by
-default, ORB as the fast option) are detected where both frames have depth, matched by
-descriptor with Lowe's ratio test and a mutual check, lifted to 3-D with each frame's vertex
-map, and kept only if they move less than `max_motion_m` and agree with their neighbours: a
-match whose distances to the nearby matches change by more than a small tolerance between the
-frames breaks local rigidity (a locally rigid consensus, in place of a global RANSAC that a
-deforming scene would fail). tracking/terms/features.py puts the survivors in the solve.
+default, ORB as the fast option) are detected where there is depth and matched by descriptor
+with Lowe's ratio test and a mutual check; dense optical flow (DIS) gives pairs on a grid where
+a surface has too little texture for features. Pairs are lifted to 3-D with each frame's
+vertex map (sub-pixel) and kept only near their predicted position (max_motion_m, and a few
+times the median distance from it) and where they agree with their neighbours: a pair whose
+distances to the nearby pairs change by more than a small tolerance breaks local rigidity (a
+locally rigid consensus, in place of a global RANSAC that a deforming scene would fail).
+colour.py puts the survivors on the model; terms/features.py puts them in the solve.
 """
 from __future__ import annotations
 
@@ -37,16 +39,17 @@ class FeatureParams:
     min_neighbours: int = 2             # a match with fewer neighbours has no support: dropped
     anchor_distance_m: float = 0.01     # a feature is put on the model surfel drawn at its pixel
                                         # if that surfel is this close to the feature's depth point
-    flow: bool = True                   # dense optical flow from the last frame too (flow_pairs)
+    flow: bool = True                   # dense optical flow too (from the model's colour, colour.py)
     flow_stride_px: int = 8             # its grid
-    flow_weight: float = 1.0            # a flow correspondence's weight against a feature's (the shirt
-                                        # pair: EPE 38 mm at 0.3, 25 mm at 1)
+    flow_weight: float = 1.0            # a flow pair's weight against a feature's (the shirt pair:
+                                        # EPE 38 mm at 0.3, 25 mm at 1)
 
     CHOICES = {"detector": DETECTORS}
 
     def problems(self) -> dict[str, str | bool]:
         return {"ratio": not 0 < self.ratio <= 1 and "must be in (0, 1]",
-                "min_agreement": not 0 <= self.min_agreement <= 1 and "must be in [0, 1]"}
+                "min_agreement": not 0 <= self.min_agreement <= 1 and "must be in [0, 1]",
+                "flow_stride_px": self.flow_stride_px < 1 and "must be at least 1"}
 
 
 @dataclass(frozen=True)

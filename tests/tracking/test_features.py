@@ -118,3 +118,9 @@ def test_combine_keeps_one_match_a_surfel_the_first_sets():
     np.testing.assert_array_equal(m.ref_points[:, 0], [1, 1, 2])       # surfel 5 from the first set
     np.testing.assert_array_equal(m.weights, [1, 1, 0.5])
     assert len(combine()) == 0
+
+
+def test_parameter_problems_are_named():
+    assert FeatureParams().problems() == {"ratio": False, "min_agreement": False, "flow_stride_px": False}
+    bad = FeatureParams(ratio=1.5, min_agreement=-0.1, flow_stride_px=0).problems()
+    assert all(isinstance(v, str) for v in bad.values()) and set(bad) == {"ratio", "min_agreement", "flow_stride_px"}
