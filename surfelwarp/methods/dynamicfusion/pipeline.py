@@ -117,14 +117,15 @@ class DynamicFusionMethod:
                                 mesh.faces, self.intrinsics)
         timer.lap("solver_maps")
 
-        rigid = self.tracker.rigid(*maps_to_world(maps, T_rendered), obs,
+        world_vertex, world_normal = maps_to_world(maps, T_rendered)
+        rigid = self.tracker.rigid(world_vertex, world_normal, obs,
                                    self.tracker.stillness_map(maps.index, mesh.knn, mesh.weights))
         timer.lap("rigid")
 
         surfels = self.predicted_points(maps, T_rendered)
         timer.lap("predict")
         # Colour features and flow of the last frame matched into this one, on the points drawn at them.
-        matches = self.tracker.features(obs, self.model_view(maps, T_rendered, surfels), self.field)
+        matches = self.tracker.features(obs, self.model_view(maps, world_vertex, surfels), self.field)
         timer.lap("features")
         solved, nonrigid = self.tracker.nonrigid(self.field, surfels, obs, matches)
         self.field = self.tracker.factor(solved, nonrigid)
@@ -204,15 +205,15 @@ class DynamicFusionMethod:
         ref, ref_n = inverse_warp(live, live_n, knn, weights, self.field)
         return SurfelSet(ref, ref_n, knn, weights)
 
-    def model_view(self, maps, T_camera_to_world: np.ndarray, points: SurfelSet) -> ModelView:
+    def model_view(self, maps, world_vertex: np.ndarray, points: SurfelSet) -> ModelView:
         """The predicted points (predicted_points, in pixel order) as the feature stage reads the
-        model. The mesh is extracted anew each frame, so no point lives on: there are no ids and
-        no reference-frame features, only the last frame's."""
+        model; world_vertex is the maps' vertex map in world (maps_to_world). The mesh is
+        extracted anew each frame, so no point lives on: there are no ids and no
+        reference-frame features, only the last frame's."""
         hit = maps.index >= 0
         index_map = np.full(maps.index.shape, -1, np.int64)
         index_map[hit] = np.arange(int(hit.sum()))
-        live, _ = transform_surfels(T_camera_to_world, maps.vertex[hit], maps.normal[hit])
-        return ModelView(index_map, np.arange(len(live)), live, None, points.knn, points.weights)
+        return ModelView(index_map, index_map[hit], world_vertex[hit], None, points.knn, points.weights)
 
     def _depth(self, obs: CameraObservation) -> np.ndarray:
         """The depth the tracker used: filtered, only where the observation is valid."""
