@@ -82,8 +82,7 @@ class ColourMatcher:
                 found.append(self._flow_matches(last, obs, model, field, T))
         if not found:
             return None
-        matches = combine(*found)
-        return matches
+        return combine(*found)
 
     def _keyframe_matches(self, kp: Keypoints, obs: CameraObservation, model: ModelView,
                           field: WarpField) -> AnchoredMatches:
@@ -93,7 +92,7 @@ class ColourMatcher:
             return combine()
         ia, ib = match_descriptors(kf.keypoints, kp, p)
         q, ok = lift(kp.pixels[ib], obs.vertex_map, obs.valid)
-        index = np.minimum(np.searchsorted(model.ids, kf.ids[ia]), max(len(model.ids) - 1, 0))
+        index = np.minimum(np.searchsorted(model.ids, kf.ids[ia]), len(model.ids) - 1)
         ok &= model.ids[index] == kf.ids[ia]          # surfels removed since are gone
         ia, q, index = ia[ok], q[ok], index[ok]
         predicted, _ = warp(kf.points[ia], None, model.knn[index], model.weights[index], field)

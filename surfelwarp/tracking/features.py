@@ -67,14 +67,13 @@ class FeatureMatches:
     current_pixels: np.ndarray
     previous_points: np.ndarray
     current_points: np.ndarray
-    candidates: int = 0                 # descriptor matches before the 3-D checks
 
     def __len__(self) -> int:
         return len(self.previous_points)
 
     def select(self, keep: np.ndarray) -> "FeatureMatches":
         return FeatureMatches(self.previous_pixels[keep], self.current_pixels[keep], self.previous_points[keep],
-                              self.current_points[keep], self.candidates)
+                              self.current_points[keep])
 
 
 def grey(color: np.ndarray) -> np.ndarray:
@@ -272,7 +271,7 @@ def checked_points(pa: np.ndarray, pb: np.ndarray, qa: np.ndarray, ok_a: np.ndar
     ok = ok_a & ok_b
     qa_now = transform_points(T_previous_to_current, qa)
     ok &= near_prediction(np.linalg.norm(qb - qa_now, axis=1), ok, params)
-    matches = FeatureMatches(pa[ok], pb[ok], qa[ok], qb[ok], candidates=len(pa))
+    matches = FeatureMatches(pa[ok], pb[ok], qa[ok], qb[ok])
     if len(matches) == 0:
         return matches
     return matches.select(locally_rigid(qa_now[ok], qb[ok], params))
