@@ -49,6 +49,9 @@ def _add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--method", choices=METHODS, default="surfelwarp")
     p.add_argument("--config", type=Path, default=None, metavar="FILE",
                    help="the method's parameters to override, TOML or JSON (see docs/cli.md)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run OUT holds from its last checkpoint (same input and parameters; "
+                        "--max-frames may be larger)")
     p.add_argument("--camera", choices=("moving", "static"), default=None,
                    help="'static': the camera does not move, every motion is the scene's; "
                         "'moving' (default): its pose is estimated (config key tracking.camera)")
@@ -124,20 +127,29 @@ def _method(args: argparse.Namespace, params, intrinsics):
     return ObserveMethod()
 
 
+def check_out_folder(input_path: Path, out: Path) -> Path:
+    """OUT, if it can hold a run's outputs: a folder (or nothing yet), not INPUT nor inside it."""
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "output path exists and is not a folder")
+    inp, target = input_path.resolve(), out.resolve()
+    if target == inp or inp in target.parents:
+        raise InputError(out, f"output folder is the input folder {input_path} or lies inside it; "
+                              f"choose another --out")
+    return out
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from surfelwarp.io.sequence import open_sequence
     from surfelwarp.run import input_config, run_sequence
 
     params = _params(args)
     preprocess = _preprocess_params(args)
-    out = args.out
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "output path exists and is not a folder")
+    out = check_out_folder(args.input, args.out)
     seq = open_sequence(args.input, intrinsics=_intrinsics(args), depth_scale=args.depth_scale,
                         start=args.start, max_frames=args.max_frames)
     outputs = run_sequence(seq, out, _method(args, params, seq.intrinsics), save_every=args.save_every,
                            preprocess_params=preprocess, input_config=input_config(seq, args.start, args.max_frames),
-                           progress=False if args.no_progress else None)
+                           progress=False if args.no_progress else None, resume=args.resume)
     s = outputs.summary()
     print(f"{s['frames']} frames, median {s['median_frame_seconds'] * 1000:.0f} ms/frame, "
           f"peak {s['peak_rss_mb']:.0f} MB; outputs in {out}/ (live/, model.ply, metrics.json)")
@@ -152,12 +164,16 @@ def compare_spec(args: argparse.Namespace):
     if args.hierarchical:
         df = replace(df, tracking=replace(df.tracking, hierarchy=replace(df.tracking.hierarchy, enabled=True)))
     if args.voxel_size is not None:
-        if not args.voxel_size > 0:
-            raise InputError(None, f"--voxel-size must be positive, got {args.voxel_size}")
+        if not 0 < args.voxel_size < 1:
+            raise InputError(None, f"--voxel-size must be in (0, 1) metres, got {args.voxel_size}")
         # The truncation band keeps its width in voxels (3, as the defaults 12 mm / 4 mm).
         df = replace(df, tsdf=replace(df.tsdf, voxel_size_m=args.voxel_size, truncation_m=3 * args.voxel_size))
     sw_field = None
     if args.graph_k is not None:
+        from surfelwarp.config import range_problem
+        problem = range_problem(replace(df.warp_field, graph_k=args.graph_k), "graph_k")
+        if problem:
+            raise InputError(None, f"--graph-k {problem}")
         df = replace(df, warp_field=replace(df.warp_field, graph_k=args.graph_k))
         sw_field = df.warp_field
     return _input_spec(args, dynamicfusion=df, surfelwarp_warp_field=sw_field)
@@ -174,6 +190,7 @@ def _input_spec(args: argparse.Namespace, **methods):
 
 def cmd_compare(args: argparse.Namespace) -> int:
     from surfelwarp.report.compare import compare
+    check_out_folder(args.input, args.out)
     report = compare(compare_spec(args), args.render_frames)
     print(f"comparison written to {report}")
     return 0
@@ -182,8 +199,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from surfelwarp.report.bench import bench
 
-    if args.out is not None and args.out.exists() and not args.out.is_dir():
-        raise InputError(args.out, "output path exists and is not a folder")
+    if args.out is not None:
+        check_out_folder(args.input, args.out)
     print(bench(_input_spec(args), args.compare_with, args.open3d))
     return 0
 

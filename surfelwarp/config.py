@@ -10,9 +10,13 @@ A config file nests tables like the tree (`surfelwarp run ... --config FILE`, fo
     every_frames = 50
 
 Keys not given keep their defaults. An unknown key or a value of the wrong type is an
-InputError naming the file and the key. A params class declares the values a string field may
-take in a `CHOICES` class attribute, and constraints between or on values in a `problems()`
-method (key -> whether it is out of range, or what is wrong with it).
+InputError naming the file and the key. Every number (and every entry of a list of numbers)
+must be finite and positive; a params class names in class attributes the exceptions and
+bounds: `ZERO_OK` (0 is meaningful: a weight that turns a term off, a tolerance), `UNIT` (at
+most 1: cosines, shares, fractions), `AT_MOST` (name -> largest sensible value: pixel windows,
+counts that size an allocation), and `CHOICES` (the values a string field may take); a
+`problems()` method adds constraints between values (key -> whether it is out of range, or
+what is wrong with it).
 """
 from __future__ import annotations
 
@@ -107,8 +111,29 @@ def read_table(path: Path) -> dict:
     return table
 
 
+def range_problem(params, name: str) -> str | None:
+    """What is wrong with the number(s) in field `name` of `params` by its class's ZERO_OK, UNIT
+    and AT_MOST (None: nothing)."""
+    cls, value = type(params), getattr(params, name)
+    values = value if isinstance(value, tuple) else (value,)
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+        return None
+    low_ok = name in getattr(cls, "ZERO_OK", ())
+    high = 1 if name in getattr(cls, "UNIT", ()) else getattr(cls, "AT_MOST", {}).get(name)
+    for v in values:
+        if not math.isfinite(v) or v < 0 or (v == 0 and not low_ok) or (high is not None and v > high):
+            span = f"{'[0' if low_ok else '(0'}, {'inf)' if high is None else f'{high}]'}"
+            return f"must be in {span}, got {v!r}"
+    return None
+
+
 def check(params, path=None, prefix: str = ""):
-    """`params` if no class in its tree reports a problem (params.problems()), else InputError."""
+    """`params` if every number in its tree is in range (range_problem) and no class reports a
+    problem (params.problems()), else InputError."""
+    for f in fields(params):
+        problem = range_problem(params, f.name)
+        if problem:
+            raise _bad(path, prefix + f.name, problem)
     problems = params.problems() if hasattr(params, "problems") else {}
     for key, bad in problems.items():
         if bad:

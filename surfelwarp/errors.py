@@ -13,5 +13,10 @@ class InputError(Exception):
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
 
 
+class OutputError(InputError):
+    """An output that cannot be written (full disk, no permission): the run ends with one line,
+    the files written before it stay whole."""
+
+
 class GLUnavailableError(RuntimeError):
     """No headless OpenGL context could be created."""

@@ -18,6 +18,9 @@ class PreprocessParams:
     bilateral_sigma_depth_m: float = 0.025
     confidence_phi: float = 0.6          # Keller et al.: c = exp(-gamma^2 / (2 phi^2))
     max_view_angle_deg: float = 75.0     # radii of grazing views are clamped at this angle
+    # A frame with fewer valid pixels is not tracked or fused (the model and pose are kept);
+    # before there is a model, it is skipped (a sensor's first frames are often empty).
+    min_valid_pixels: int = 100
 
 
 @dataclass(frozen=True)

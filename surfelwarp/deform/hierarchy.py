@@ -27,8 +27,7 @@ class HierarchyParams:
     keep_graph: bool = False # also keep the k-nearest-node graph among the warp nodes
                              # (SurfelWarp Eq. 10) beside the tree's links
 
-    def problems(self) -> dict[str, bool]:
-        return {"levels": self.levels < 1, "k": self.k < 1}
+    AT_MOST = {"levels": 8, "k": 16}
 
 
 @dataclass(frozen=True)

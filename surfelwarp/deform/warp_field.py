@@ -38,12 +38,11 @@ class WarpFieldParams:
     k_skin: int = 4                   # nearest nodes blended per point
     graph_k: int = 8                  # regularisation neighbours per node
 
+    AT_MOST = {"k_skin": 16, "graph_k": 64}
+
     @property
     def sigma(self) -> float:
         return self.node_radius_m if self.sigma_m is None else self.sigma_m
-
-    def problems(self) -> dict[str, bool]:
-        return {"node_radius_m": self.node_radius_m <= 0, "k_skin": self.k_skin < 1, "graph_k": self.graph_k < 1}
 
 
 @dataclass(frozen=True, eq=False)

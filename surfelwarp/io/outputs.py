@@ -1,7 +1,9 @@
 """The files a run writes (CONTRACT.md): live/frame-%06d.ply, model.ply, metrics.json.
 
 Every file is written atomically, and metrics.json is rewritten after each saved frame, so a
-run that stops early (bad frame, Ctrl-C) leaves complete, consistent files behind.
+run that stops early (bad frame, Ctrl-C, kill, full disk) leaves complete, consistent files
+behind. A run into a folder that holds an earlier run's outputs removes them only once its own
+first frame is processed (`claim`), so a run that fails before that leaves the earlier one whole.
 """
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from surfelwarp.errors import OutputError
 from surfelwarp.io.ply import write_atomic, write_ply
 
 
@@ -27,7 +30,9 @@ class FrameRecord:
     gauss_newton_iterations: int = 0
     energy: float = 0.0
     reinitialized: bool = False
+    tracked: bool = True          # False: too little depth; the model and the pose were kept
     model_bytes: int = 0          # memory the model holds at the end of the frame
+    rss_mb: float = 0.0           # the process's resident memory at the end of the frame
     # The method's own typed counts (dataclasses: the tracker's, fusion's, the volume's), listed
     # in metrics.json beside the common fields; fields that are None are left out.
     details: tuple = ()
@@ -50,11 +55,22 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0   # Linux reports KiB
 
 
+def rss_mb() -> float:
+    """Resident memory now (Linux: /proc/self/statm; elsewhere the peak)."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, ValueError, IndexError):
+        return peak_rss_mb()
+    return pages * resource.getpagesize() / 2**20
+
+
 class RunOutputs:
     def __init__(self, out_dir: Path, method: str, input_path: Path, config: dict):
         self.out_dir = Path(out_dir)
         self.method, self.input_path, self.config = method, str(input_path), config
         self.frames: list[FrameRecord] = []
+        self.skipped: list[int] = []      # frames with too little depth to start a model from
+        self.missing: list[int] = []      # gaps in the input's frame numbers
         self.error: str | None = None
 
     def live_path(self, frame: int) -> Path:
@@ -63,13 +79,22 @@ class RunOutputs:
     def save_live(self, frame: int, vertices: np.ndarray, faces: np.ndarray | None = None) -> None:
         write_ply(self.live_path(frame), vertices, faces)
 
-    def remove_stale_live(self, frames: set[int]) -> None:
-        """Drop live/frame-*.ply files of an earlier run into the same folder that this run
-        will not rewrite, so that live/ and metrics.json describe one run."""
-        for path in (self.out_dir / "live").glob("frame-*.ply"):
-            stem = path.name[len("frame-"):-len(".ply")]
-            if stem.isdigit() and int(stem) not in frames:
-                path.unlink()
+    # An earlier run's outputs in OUT (other files there are the user's and stay).
+    EARLIER = ("live/frame-*.ply", "render/frame-*.png", "model.ply", "model_mesh.ply", "metrics.json",
+               "eval.json", "surfels.png", "live.mp4", "checkpoint.pkl")
+
+    def claim(self) -> None:
+        """Remove an earlier run's outputs from OUT, so that it holds this run's alone."""
+        try:
+            for pattern in self.EARLIER:
+                for path in self.out_dir.glob(pattern):
+                    path.unlink()
+        except OSError as exc:
+            raise OutputError(self.out_dir, f"cannot remove an earlier run's outputs ({exc.strerror})") from None
+
+    def remove_live(self, frames: set[int]) -> None:
+        for frame in frames:
+            self.live_path(frame).unlink(missing_ok=True)
 
     def save_model(self, vertices: np.ndarray, faces: np.ndarray | None = None) -> None:
         write_ply(self.out_dir / "model.ply", vertices, faces)
@@ -81,7 +106,10 @@ class RunOutputs:
         totals = [r.seconds["total"] for r in self.frames]
         return {"frames": len(self.frames),
                 "median_frame_seconds": float(np.median(totals)) if totals else 0.0,
-                "peak_rss_mb": round(peak_rss_mb(), 1)}
+                "peak_rss_mb": round(peak_rss_mb(), 1),
+                "skipped_frames": self.skipped,
+                "untracked_frames": [r.frame for r in self.frames if not r.tracked],
+                "missing_frames": self.missing}
 
     def write_metrics(self) -> Path:
         doc = {"method": self.method, "input": self.input_path, "config": self.config,

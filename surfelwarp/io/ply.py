@@ -3,8 +3,11 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import BinaryIO, Callable
 
 import numpy as np
+
+from surfelwarp.errors import OutputError
 
 _PLY_TYPES = {"f4": "float", "u4": "uint", "i4": "int", "u1": "uchar", "f8": "double", "i1": "char",
               "u2": "ushort", "i2": "short"}
@@ -45,12 +48,22 @@ def vertex_table(position, normal, ref_position, radius=None, confidence=None, i
 
 def write_atomic(path: Path, data: bytes) -> None:
     """Write to a temporary file beside `path`, then rename over it: readers never see half a file."""
+    write_atomic_with(path, lambda f: f.write(data))
+
+
+def write_atomic_with(path: Path, write: Callable[[BinaryIO], object]) -> None:
+    """write(f) into a temporary file beside `path`, then rename it over `path`. A write that
+    fails (full disk, no permission) leaves `path` as it was and raises OutputError."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise OutputError(path, f"cannot write ({exc.strerror or exc.__class__.__name__})") from None
 
 
 def encode_ply(vertices: np.ndarray, faces: np.ndarray | None = None) -> bytes:

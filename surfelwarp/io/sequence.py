@@ -9,8 +9,11 @@ headers the same way.
 """
 from __future__ import annotations
 
+import os
 import re
 import struct
+import sys
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -54,6 +57,27 @@ LAYOUTS = (
 )
 
 
+@contextmanager
+def _quiet_stderr():
+    """File descriptor 2 to /dev/null: libpng and libjpeg print their complaints about a damaged
+    file there, beside the one line the run says about it."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _imread(path: Path) -> np.ndarray | None:
+    """cv2.imread unchanged (no EXIF rotation, which would undo a registration), quietly."""
+    with _quiet_stderr():
+        return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+
+
 def parse_intrinsics_file(path: Path) -> Intrinsics:
     """A 3x3 or 4x4 camera matrix, whitespace separated."""
     try:
@@ -71,11 +95,21 @@ def parse_intrinsics_file(path: Path) -> Intrinsics:
     return Intrinsics(float(fx), float(fy), float(cx), float(cy))
 
 
+def check_principal_point(intrinsics: Intrinsics, source: str | Path | None, width: int, height: int) -> None:
+    """The principal point lies in the image (every real camera's does)."""
+    if not (0 <= intrinsics.cx <= width and 0 <= intrinsics.cy <= height):
+        where = "--intrinsics" if source is None else None
+        raise InputError(source, f"{where + ': ' if where else ''}principal point ({intrinsics.cx:g}, "
+                                 f"{intrinsics.cy:g}) lies outside the {width}x{height} image")
+
+
 def parse_intrinsics_flag(text: str) -> Intrinsics:
     try:
         fx, fy, cx, cy = (float(x) for x in text.split(","))
     except ValueError:
         raise InputError(None, f"--intrinsics {text!r}: expected four numbers fx,fy,cx,cy") from None
+    if not np.isfinite([fx, fy, cx, cy]).all():
+        raise InputError(None, f"--intrinsics {text!r}: expected finite numbers")
     if fx <= 0 or fy <= 0:
         raise InputError(None, f"--intrinsics {text!r}: focal lengths must be positive")
     return Intrinsics(fx, fy, cx, cy)
@@ -166,6 +200,12 @@ class Sequence:
         self.root, self.layout, self.intrinsics = root, layout, intrinsics
         self.files, self.depth_scale = files, depth_scale
         self.color_size, self.notes = color_size, notes
+        # Gaps in the frame numbers between the first and the last selected frame.
+        present = {f.index for f in files}
+        self.missing = [i for i in range(files[0].index, files[-1].index + 1) if i not in present] if files else []
+        if self.missing:
+            self.notes = self.notes + (f"{len(self.missing)} frame number(s) missing, the run goes on without "
+                                       f"them: {_ranges(self.missing)}",)
 
     def __len__(self) -> int:
         return len(self.files)
@@ -177,7 +217,7 @@ class Sequence:
 
     def read_depth(self, frame: FrameFiles) -> np.ndarray:
         """Depth in metres as float32, 0 where there is no measurement."""
-        raw = cv2.imread(str(frame.depth), cv2.IMREAD_UNCHANGED)
+        raw = _imread(frame.depth)
         if raw is None:
             raise InputError(frame.depth, "cannot decode depth PNG (file is damaged or unreadable)")
         if raw.dtype != np.uint16 or raw.ndim != 2:
@@ -192,8 +232,7 @@ class Sequence:
         when colour is not used or this frame has none."""
         if not self.has_color or frame.color is None:
             return None
-        # UNCHANGED: no EXIF rotation, which would undo the registration.
-        raw = cv2.imread(str(frame.color), cv2.IMREAD_UNCHANGED)
+        raw = _imread(frame.color)
         if raw is None:
             raise InputError(frame.color, "cannot decode colour frame (file is damaged or unreadable)")
         if raw.dtype != np.uint8 or raw.ndim != 3 or raw.shape[2] not in (3, 4):
@@ -220,6 +259,17 @@ class Sequence:
         """(files, depth) of every frame; the colour, where wanted, is read_color(files)."""
         for frame in self.files:
             yield frame, self.read_depth(frame)
+
+
+def _ranges(numbers: list[int]) -> str:
+    """'3, 7-9, 12' for [3, 7, 8, 9, 12]."""
+    parts, start = [], None
+    for i, n in enumerate(numbers):
+        start = n if start is None else start
+        if i + 1 == len(numbers) or numbers[i + 1] != n + 1:
+            parts.append(f"{start}" if start == n else f"{start}-{n}")
+            start = None
+    return ", ".join(parts)
 
 
 def _match_frames(root: Path, layout: Layout) -> list[tuple[int, Path]]:
@@ -269,7 +319,8 @@ def open_sequence(path: str | Path, *, intrinsics: Intrinsics | None = None, dep
     if not depth_scale > 0:
         raise InputError(None, f"--depth-scale must be positive, got {depth_scale}")
     layout, frames, intrinsics_path = detect_layout(root, intrinsics is not None)
-    if intrinsics is None:
+    given = intrinsics is not None
+    if not given:
         intrinsics = parse_intrinsics_file(intrinsics_path)
     frames = [(i, p) for i, p in frames if i >= start]
     if max_frames is not None:
@@ -285,5 +336,6 @@ def open_sequence(path: str | Path, *, intrinsics: Intrinsics | None = None, dep
             candidate = root / pattern.format(index)
             extra[kind] = candidate if candidate.exists() else None
         files.append(FrameFiles(index, depth_path, **extra))
+    check_principal_point(intrinsics, None if given else intrinsics_path, *size)
     color_size, notes = plan_color(layout, files, size, root)
     return Sequence(root, layout.name, intrinsics.with_size(*size), files, depth_scale, color_size, notes)

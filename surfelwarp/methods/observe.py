@@ -37,6 +37,15 @@ class ObserveMethod:
         return FrameRecord(frame=obs.frame_index, reference_frame=obs.frame_index,
                            camera_to_world=np.eye(4), seconds={}, surfels=n)
 
+    @property
+    def started(self) -> bool:
+        return self._table is not None
+
+    def hold(self, obs: CameraObservation) -> FrameRecord:
+        """The last frame's surfels stay the live model."""
+        return FrameRecord(frame=obs.frame_index, reference_frame=obs.frame_index, camera_to_world=np.eye(4),
+                           seconds={}, surfels=len(self._table), tracked=False)
+
     def live_vertices(self) -> tuple[np.ndarray, None]:
         return self._table, None
 

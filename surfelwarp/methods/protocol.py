@@ -17,8 +17,15 @@ class Method(Protocol):
     def config(self) -> dict:
         """Every parameter in force, for metrics.json."""
 
+    @property
+    def started(self) -> bool:
+        """Whether there is a model (process() may not start one from a frame with too little depth)."""
+
     def process(self, obs: CameraObservation) -> FrameRecord:
         """One frame, top to bottom; the frame's record."""
+
+    def hold(self, obs: CameraObservation) -> FrameRecord:
+        """A frame with too little depth to track: the model and the pose are kept; its record."""
 
     def live_vertices(self) -> tuple[np.ndarray, np.ndarray | None]:
         """The live model in this frame's camera: a PLY vertex table and faces (None: points)."""

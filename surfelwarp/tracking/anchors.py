@@ -65,6 +65,9 @@ class AnchorParams:
     # along their surface, were not released (tests/tracking/test_anchors.py).
     release_unseen_weight: float = 0.25
 
+    ZERO_OK = {"weight", "release_support", "settle_sigmas", "settle_frames", "release_unseen_weight"}
+    UNIT = {"release_unseen_weight"}
+
 
 @dataclass(frozen=True)
 class AnchorTerm:

@@ -45,11 +45,10 @@ class FeatureParams:
                                         # EPE 38 mm at 0.3, 25 mm at 1)
 
     CHOICES = {"detector": DETECTORS}
-
-    def problems(self) -> dict[str, str | bool]:
-        return {"ratio": not 0 < self.ratio <= 1 and "must be in (0, 1]",
-                "min_agreement": not 0 <= self.min_agreement <= 1 and "must be in [0, 1]",
-                "flow_stride_px": self.flow_stride_px < 1 and "must be at least 1"}
+    ZERO_OK = {"sift_contrast", "motion_floor_m", "rigidity_tolerance", "rigidity_floor_m", "min_agreement",
+               "min_neighbours", "flow_weight"}
+    UNIT = {"ratio", "min_agreement"}
+    AT_MOST = {"flow_stride_px": 256}
 
 
 @dataclass(frozen=True)

@@ -46,6 +46,10 @@ class SilhouetteParams:
     min_view_cos: float = 0.5       # nor points whose normal is more than 60 deg from the view ray
     occluder_px: int = 24           # no depth this close to depth in front of a point: not free
 
+    ZERO_OK = {"weight", "depth_margin_m", "hole_px", "margin_px", "border_px", "min_view_cos", "occluder_px"}
+    UNIT = {"min_view_cos"}
+    AT_MOST = {"hole_px": 256, "margin_px": 256, "border_px": 256, "occluder_px": 256}
+
 
 # The chamfer distance of cv2's 5x5 mask is at least this fraction of the Euclidean one.
 _CHAMFER_MIN = 0.95

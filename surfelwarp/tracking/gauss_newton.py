@@ -78,6 +78,10 @@ class NonRigidParams:
     # without an anchor state, free space at weight 0) is left out.
     terms: tuple[str, ...] = ("depth", "features", "regulariser", "rest_anchors", "free_space")
 
+    ZERO_OK = {"lambda_reg", "max_iterations", "min_normal_cos", "stop_motion_m", "stop_energy_rel", "damping",
+               "feature_weight", "feature_normal_share", "free_rings"}
+    UNIT = {"min_normal_cos", "stop_energy_rel", "pcg_rtol", "feature_normal_share"}
+
     def __post_init__(self):
         if self.robust not in ROBUST:
             raise ValueError(f"robust must be one of {', '.join(ROBUST)}, got {self.robust!r}")

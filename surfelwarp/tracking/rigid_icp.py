@@ -46,10 +46,14 @@ class RigidParams:
     weak_eigen_ratio: float = 0.08
     weak_median_gain: float = 0.05
 
+    ZERO_OK = {"iterations", "min_normal_cos", "stop_rotation_rad", "stop_translation_m", "min_eigen_ratio",
+               "weak_eigen_ratio", "weak_median_gain"}
+    UNIT = {"min_normal_cos", "min_eigen_ratio", "weak_eigen_ratio", "weak_median_gain"}
+    AT_MOST = {"pyramid_levels": 6}
+
     def problems(self) -> dict[str, bool]:
         return {"iterations": len(self.iterations) != self.pyramid_levels,
-                "distance_gate_m": len(self.distance_gate_m) != self.pyramid_levels,
-                "pyramid_levels": self.pyramid_levels < 1}
+                "distance_gate_m": len(self.distance_gate_m) != self.pyramid_levels}
 
 
 @dataclass(frozen=True)

@@ -60,6 +60,7 @@ class TrackingParams:
     features: FeatureParams = field(default_factory=FeatureParams)
 
     CHOICES = {"camera": CAMERAS}
+    ZERO_OK = UNIT = {"released_rigid_weight", "min_still_share"}
 
 
 @dataclass(frozen=True)

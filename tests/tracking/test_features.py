@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from surfelwarp.config import range_problem
 from surfelwarp.data_tools.texture import albedo
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.tracking.features import (FeatureParams, checked_pairs, detect, flow_pairs, locally_rigid,
@@ -119,7 +120,9 @@ def test_combine_keeps_one_match_a_surfel_the_first_sets():
     assert len(combine()) == 0
 
 
-def test_parameter_problems_are_named():
-    assert FeatureParams().problems() == {"ratio": False, "min_agreement": False, "flow_stride_px": False}
-    bad = FeatureParams(ratio=1.5, min_agreement=-0.1, flow_stride_px=0).problems()
-    assert all(isinstance(v, str) for v in bad.values()) and set(bad) == {"ratio", "min_agreement", "flow_stride_px"}
+def test_parameter_ranges_are_named():
+    for name in ("ratio", "min_agreement", "flow_stride_px"):
+        assert range_problem(FeatureParams(), name) is None
+    assert "(0, 1]" in range_problem(FeatureParams(ratio=1.5), "ratio")
+    assert "[0, 1]" in range_problem(FeatureParams(min_agreement=-0.1), "min_agreement")
+    assert "(0, 256]" in range_problem(FeatureParams(flow_stride_px=0), "flow_stride_px")

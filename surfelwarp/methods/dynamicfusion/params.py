@@ -22,5 +22,8 @@ class DynamicFusionParams:
     cull_block: int = 6               # block edge, voxels (4-8 all cost about the same)
     cull_margin_m: float = 0.004      # slack for the blend leaving the hull of its nodes' motions
 
+    ZERO_OK = {"min_first_points", "cull_margin_m"}
+    AT_MOST = {"cull_block": 64}
+
     def to_dict(self) -> dict:
         return asdict(self)

@@ -20,7 +20,7 @@ deform/hierarchy.py), as the shared tracker can for SurfelWarp.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from pykdtree.kdtree import KDTree
@@ -101,6 +101,14 @@ class DynamicFusionMethod:
     @property
     def T_camera_to_world(self) -> np.ndarray:
         return self.tracker.T_camera_to_world
+
+    @property
+    def started(self) -> bool:
+        return self.volume is not None
+
+    def hold(self, obs: CameraObservation) -> FrameRecord:
+        """Too little depth: no tracking, no fusion; the volume, warp field and pose are kept."""
+        return replace(self._record(obs, StageTimer()), tracked=False)
 
     # ------------------------------------------------------------------ one frame
     def process(self, obs: CameraObservation) -> FrameRecord:
@@ -282,7 +290,7 @@ class DynamicFusionMethod:
         if not p.cull_voxels:
             return None
         keep = fusible_blocks(self.blocks, self.field, invert(self.T_camera_to_world), depth_m, self.intrinsics,
-                              p.tsdf.truncation_m, p.cull_margin_m)
+                              self.volume.truncation_m(p.tsdf), p.cull_margin_m)
         return block_voxels(self.blocks, keep, self.volume.dims)
 
     def warp_voxels(self, ids: np.ndarray | None = None) -> np.ndarray:

@@ -32,10 +32,14 @@ class TSDFParams:
     max_weight: float = 100.0
     margin_m: float = 0.1            # added on every side of the first frame's bounding box
     max_voxels: int = 8_000_000      # larger boxes get coarser voxels (see TSDFVolume.from_points)
+                                     # and a truncation of at least two of them
+
+    ZERO_OK = {"margin_m"}
+    AT_MOST = {"max_voxels": 200_000_000, "margin_m": 2.0}
 
     def problems(self) -> dict[str, bool]:
-        return {"voxel_size_m": self.voxel_size_m <= 0, "truncation_m": self.truncation_m <= 0,
-                "max_voxels": self.max_voxels < 1}
+        return {"truncation_m": self.truncation_m < 2 * self.voxel_size_m and
+                "must be at least two voxels (2 x voxel_size_m)"}
 
 
 @dataclass
@@ -84,6 +88,12 @@ class TSDFVolume:
         # Centre the grid on the box so the margin is even on both sides.
         origin = 0.5 * (lo + hi) - 0.5 * (dims - 1) * voxel
         return cls.empty(origin, dims, voxel, color)
+
+    def truncation_m(self, params: TSDFParams) -> float:
+        """The truncation in force: the configured one, but at least two of this volume's voxels
+        (a volume coarsened to fit max_voxels keeps a band two voxels wide; thinner, the zero
+        crossing falls between voxels and the surface breaks up)."""
+        return max(params.truncation_m, 2.0 * self.voxel_size)
 
     @property
     def dims(self) -> tuple[int, int, int]:
@@ -153,7 +163,7 @@ def fuse(volume: TSDFVolume, warped_centres_world: np.ndarray | None, voxel_weig
     height, width = depth.shape
     T = np.asarray(T_world_to_camera, np.float64)
     fx, fy, cx, cy = (np.float32(c) for c in (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy))
-    tau = np.float32(params.truncation_m)
+    tau = np.float32(volume.truncation_m(params))
     w_max = np.float32(params.max_weight)
     depth_flat = depth.reshape(-1)
     tsdf = volume.tsdf.reshape(-1)       # views: updates land in the volume

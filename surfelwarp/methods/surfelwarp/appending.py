@@ -64,6 +64,9 @@ class AppendParams:
     # The blend varies on the scale of sigma, so the truncation error is ~(0.1)^2 / 6 relative.
     strain_step_m: float | None = None
 
+    ZERO_OK = {"intrinsic_epsilon", "min_weight_sum"}
+    UNIT = {"min_weight_sum"}
+
 
 @dataclass(frozen=True, eq=False)
 class AppendResult:

@@ -65,8 +65,10 @@ class FusionParams:
     # would make the reference follow every slide (False: the paper's Eq. 3 as it is).
     reference_along_normal: bool = True
 
-    def problems(self) -> dict[str, bool]:
-        return {"window": self.window < 1}
+    ZERO_OK = {"axial_noise", "normal_threshold", "stable_confidence", "unstable_frames", "redundant_distance_ratio",
+               "redundant_normal_threshold", "redundant_neighbourhood_px", "carve_beyond_m", "coverage_px"}
+    UNIT = {"normal_threshold", "redundant_normal_threshold"}
+    AT_MOST = {"window": 16, "redundant_neighbourhood_px": 16, "coverage_px": 16}
 
 
 class Correspondences(NamedTuple):

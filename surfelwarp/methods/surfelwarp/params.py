@@ -30,9 +30,8 @@ class SurfelWarpParams:
     index_map_supersample: int = 4   # Sec. VI-A: 4x4 super-sampled index map
 
     CHOICES = {"recent_draw": ("fill", "fill_all", "with")}
-
-    def problems(self) -> dict[str, bool]:
-        return {"index_map_supersample": self.index_map_supersample < 1}
+    ZERO_OK = {"recent_frames"}
+    AT_MOST = {"index_map_supersample": 8}
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -75,6 +75,10 @@ class SurfelWarpMethod:
     def T_camera_to_world(self) -> np.ndarray:
         return self.tracker.T_camera_to_world
 
+    @property
+    def started(self) -> bool:
+        return self.model is not None
+
     # ------------------------------------------------------------------ one frame
     def process(self, obs: CameraObservation) -> FrameRecord:
         if self.model is None:
@@ -192,6 +196,12 @@ class SurfelWarpMethod:
         return ModelUpdateCounts(len(corr.surfel_index), len(added), int(unstable_or_redundant.sum()), int(carved.sum()),
                                  added.candidates, added.rejected_weight, added.rejected_compressive,
                                  self.field.num_nodes - first_new)
+
+    def hold(self, obs: CameraObservation) -> FrameRecord:
+        """Too little depth: no tracking, no fusion; the model, warp field and pose are kept."""
+        return FrameRecord(frame=obs.frame_index, reference_frame=self.reference_frame,
+                           camera_to_world=self.T_camera_to_world.copy(), seconds={}, surfels=len(self.model),
+                           nodes=self.field.num_nodes, model_bytes=self.model_bytes(), tracked=False)
 
     def initialise(self, obs: CameraObservation) -> FrameRecord:
         """Sec. VI-E: the first frame's depth surfels become S_ref = S_live; nodes sub-sampled from them."""

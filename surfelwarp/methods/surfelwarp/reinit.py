@@ -56,6 +56,11 @@ class ReinitParams:
     # Projections this close to the image edge are not judged (preprocessing crops 10 px).
     image_margin_px: int = 12
 
+    ZERO_OK = {"misalignment_rmse_m", "appended_fraction", "unsupported_fraction", "unexplained_fraction",
+               "min_interval_frames", "every_frames", "support_window_px", "occlusion_margin_m", "image_margin_px"}
+    UNIT = {"appended_fraction", "unsupported_fraction", "unexplained_fraction"}
+    AT_MOST = {"support_window_px": 16, "image_margin_px": 256}
+
 
 class ReinitTrigger:
     """Counts consecutive struggling frames; `update` once per frame says when to reinitialise."""

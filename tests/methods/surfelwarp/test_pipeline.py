@@ -134,15 +134,23 @@ def test_silent_fallbacks_are_counted_per_frame(release, tmp_path):
     ('{"fusion": {"window": "four"}}', "expected an integer"),
     ('{"tracking": {"nonrigid": {"robust": "cauchy"}}}', "expected one of"),
     ('{"fusion": 3}', "expected a table"),
-    ('{"fusion": {"window": 0}}', "out of range"),
+    ('{"fusion": {"window": 0}}', "'fusion.window': must be in (0, 16], got 0"),
+    ('{"warp_field": {"sigma_m": 0}}', "'warp_field.sigma_m': must be in (0, inf)"),
+    ('{"fusion": {"normal_threshold": 1.5}}', "'fusion.normal_threshold': must be in [0, 1], got 1.5"),
+    ('{"tracking": {"rigid": {"distance_gate_m": [0.1, 0, 0.02]}}}', "'tracking.rigid.distance_gate_m': must be in"),
+    ('{"tracking": {"nonrigid": {"feature_weight": 0}}}', None),
     ('{"recent_draw": "sometimes"}', "expected one of"),
-    ('{"tracking": {"hierarchy": {"levels": 0}}}', "out of range"),
+    ('{"tracking": {"hierarchy": {"levels": 0}}}', "'tracking.hierarchy.levels': must be in (0, 8]"),
+    ('{"tracking": {"hierarchy": {"beta": 0}}}', "'tracking.hierarchy.beta': must be in (0, inf)"),
     ('{"tracking": {"nonrigid": {"terms": ["depth", "no_such_term"]}}}', "unknown term(s) no_such_term"),
     ("{not json", "does not parse"),
 ])
 def test_bad_config_is_one_clear_error(tmp_path, text, fragment):
     cfg = tmp_path / "bad.json"
     cfg.write_text(text)
+    if fragment is None:      # 0 is meaningful here (a weight that turns a term off)
+        load_params(cfg, SurfelWarpParams())
+        return
     with pytest.raises(InputError) as err:
         load_params(cfg, SurfelWarpParams())
     assert fragment in str(err.value) and "bad.json" in str(err.value)
