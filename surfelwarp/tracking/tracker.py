@@ -132,6 +132,11 @@ class Tracker:
         self.colour = ColourMatcher(intrinsics, params.features)
         self._feature_count: int | None = None
 
+    def __getstate__(self) -> dict:
+        """A checkpoint's copy (io/checkpoint.py) leaves out the frame's free-space cache: half
+        its size, and the next frame builds its own."""
+        return self.__dict__ | {"_free_space": None}
+
     def free_space(self, obs: CameraObservation, T_camera_to_world: np.ndarray) -> FreeSpace:
         """The observation's free space seen from T_camera_to_world, built once per observation
         for the frame's solves and the model's carving."""

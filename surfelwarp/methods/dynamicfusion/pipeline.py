@@ -5,9 +5,10 @@ node graph, rigid ICP and Gauss-Newton solver as SurfelWarpMethod (SurfelWarp Se
 against exactly such a baseline). Per frame, `DynamicFusionMethod.process` runs:
 
     solver maps of the warped canonical mesh (previous camera) -> rigid ICP -> data points: one
-    per covered pixel, taken back to canonical space (Eq. 7) -> non-rigid GN -> warp the voxels
-    that can be fused -> projective TSDF fusion (Eq. 3-5) -> marching cubes -> extend the warp
-    field to uncovered surface (Sec. 3.4) -> warp the mesh.
+    per covered pixel, taken back to canonical space (Eq. 7) -> non-rigid GN -> grow the volume
+    over depth seen outside it -> warp the voxels that can be fused -> projective TSDF fusion
+    (Eq. 3-5) -> marching cubes -> extend the warp field to uncovered surface (Sec. 3.4) -> warp
+    the mesh.
 
 Blocks of voxels that provably cannot be fused this frame are not warped (voxel_blocks.py).
 The mesh extracted after fusion serves three uses: this frame's output (warped by W_t), the
@@ -23,17 +24,15 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
-from surfelwarp.deform.warp_field import WarpField, extend, inverse_warp, skin, update_skinning, warp
+from surfelwarp.deform.warp_field import WarpField, extend, inverse_warp, skin, warp
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import invert, transform_surfels
 from surfelwarp.io.outputs import FrameRecord
 from surfelwarp.io.ply import vertex_table
 from surfelwarp.methods.dynamicfusion.params import DynamicFusionParams
-from surfelwarp.methods.dynamicfusion.tsdf import TSDFVolume, extract_mesh, fuse, node_distance_weight, sample_color
-from surfelwarp.methods.dynamicfusion.voxel_blocks import (VoxelBlocks, block_voxels, fusible_blocks, voxel_blocks,
-                                                          warp_points_fast)
+from surfelwarp.methods.dynamicfusion.tsdf import TSDFVolume, extract_mesh, fuse, sample_color
+from surfelwarp.methods.dynamicfusion.voxel_field import VoxelField
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.render.mesh_maps import render_mesh_maps
 from surfelwarp.render.solver_maps import maps_to_world
@@ -60,6 +59,8 @@ class UpdateCounts:
     fused_voxels: int
     warped_voxels: int
     data_points: int                # model points of the data term
+    grown_voxels: int = 0           # voxels added to cover depth seen outside the volume
+    outside_volume_full: bool = False   # depth was seen outside, but growing would pass max_voxels
 
 
 @dataclass
@@ -84,12 +85,9 @@ class DynamicFusionMethod:
 
     def __init__(self, intrinsics: Intrinsics, params: DynamicFusionParams = DynamicFusionParams()):
         self.intrinsics, self.params = intrinsics, params
-        self.volume: TSDFVolume | None = None
+        self.voxels: VoxelField | None = None     # the volume and its voxels' nodes
         self.field: WarpField | None = None
         self.mesh: CanonicalMesh | None = None
-        self.voxel_knn = self.voxel_weights = self.voxel_fusion_weight = None
-        self.voxel_centres: np.ndarray | None = None   # (V, 3) float32, cached: the grid never moves
-        self.blocks: VoxelBlocks | None = None
         self.tracker = Tracker(intrinsics, params.tracking)
         self.reference_frame = 0
         self.T_reference_camera_to_world = np.eye(4)
@@ -103,8 +101,12 @@ class DynamicFusionMethod:
         return self.tracker.T_camera_to_world
 
     @property
+    def volume(self) -> TSDFVolume | None:
+        return None if self.voxels is None else self.voxels.volume
+
+    @property
     def started(self) -> bool:
-        return self.volume is not None
+        return self.voxels is not None
 
     def hold(self, obs: CameraObservation) -> FrameRecord:
         """Too little depth: no tracking, no fusion; the volume, warp field and pose are kept."""
@@ -139,13 +141,18 @@ class DynamicFusionMethod:
         self.field = self.tracker.factor(solved, nonrigid)
         timer.lap("nonrigid")
 
+        # The volume grows over depth seen outside it (at the tracked pose).
+        T = self.T_camera_to_world
+        grown, full = self.voxels.grow(obs.vertex_map[obs.valid] @ T[:3, :3].T + T[:3, 3], self.field)
+        timer.lap("grow")
+
         depth = self._depth(obs)
-        ids = self.fusible_voxels(depth)
-        warped = self.warp_voxels(ids)
+        ids = self.voxels.fusible(self.field, invert(T), depth, self.intrinsics) if p.cull_voxels else None
+        warped = self.voxels.warp(self.field, ids)
         timer.lap("warp")
-        weight = self.voxel_fusion_weight if ids is None else self.voxel_fusion_weight[ids]
-        fused = fuse(self.volume, warped, weight, invert(self.T_camera_to_world), depth, self.intrinsics, p.tsdf,
-                     voxels=ids, color=obs.color)
+        weight = self.voxels.fusion_weight if ids is None else self.voxels.fusion_weight[ids]
+        fused = fuse(self.volume, warped, weight, invert(T), depth, self.intrinsics, p.tsdf, voxels=ids,
+                     color=obs.color)
         del warped, weight
         timer.lap("fusion")
 
@@ -156,7 +163,7 @@ class DynamicFusionMethod:
         if len(vertices):
             self.field, first_new = extend(self.field, vertices)
             if self.field.num_nodes > first_new:
-                self._update_voxel_skinning(first_new)
+                self.voxels.nodes_added(self.field, first_new)
         timer.lap("extend")
 
         if len(vertices):   # an empty extraction keeps the previous mesh
@@ -164,7 +171,7 @@ class DynamicFusionMethod:
         timer.lap("warp_mesh")
 
         update = UpdateCounts(self.field.num_nodes - first_new, fused.updated,
-                              self.volume.num_voxels if ids is None else len(ids), len(surfels.positions))
+                              self.volume.num_voxels if ids is None else len(ids), len(surfels.positions), grown, full)
         return self._record(obs, timer, nonrigid.iterations, nonrigid.energy,
                             (self.tracker.counts(rigid, nonrigid), update))
 
@@ -180,12 +187,8 @@ class DynamicFusionMethod:
                  color=obs.color)
             vertices, faces, normals = extract_mesh(volume)
             if len(vertices):
-                self.volume = volume
-                self.voxel_centres = volume.voxel_centres()
                 self.field = WarpField.from_points(vertices, p.warp_field)
-                self.voxel_knn, self.voxel_weights = self._skin_voxels()
-                self._update_fusion_weights()
-                self._update_blocks()
+                self.voxels = VoxelField(volume, self.field, p)
                 self._set_mesh(vertices, normals, faces)
                 self.reference_frame = obs.frame_index
                 self.T_reference_camera_to_world = self.T_camera_to_world.copy()
@@ -227,82 +230,6 @@ class DynamicFusionMethod:
         """The depth the tracker used: filtered, only where the observation is valid."""
         return np.where(obs.valid, obs.depth_m, 0).astype(np.float32)
 
-    def _chunks(self):
-        n, step = self.volume.num_voxels, self.params.voxel_chunk
-        for start in range(0, n, step):
-            stop = min(start + step, n)
-            yield start, stop, self.volume.voxel_centres(start, stop)
-
-    def _skin_voxels(self) -> tuple[np.ndarray, np.ndarray]:
-        """The discretised k-nearest-node field (DynamicFusion Sec. 3.3.3) at the voxel centres."""
-        k = self.params.warp_field.k_skin
-        knn = np.empty((self.volume.num_voxels, k), np.int32)
-        weights = np.empty((self.volume.num_voxels, k), np.float32)
-        for start, stop, centres in self._chunks():
-            knn[start:stop], weights[start:stop] = skin(centres, self.field.nodes, k, self.field.sigma_m)
-        return knn, weights
-
-    def _update_voxel_skinning(self, first_new: int) -> None:
-        """Skinning and fusion weights after nodes first_new.. were added (DynamicFusion Sec. 3.4).
-
-        A voxel's k nearest nodes change only if a new node is nearer than its current k-th
-        one, so only those voxels go through update_skinning (near the new nodes: a few %).
-        Blocks whose every voxel is nearer to all of its nodes than to any new node are skipped
-        without looking at their voxels.
-        """
-        field, k = self.field, self.params.warp_field.k_skin
-        if first_new < k:   # padded slots: the k-th slot is not the k-th nearest node
-            ids = np.arange(self.volume.num_voxels)
-        else:
-            b = self.blocks
-            c = 0.5 * (b.first + b.last)
-            half = np.linalg.norm(0.5 * (b.last - b.first), axis=1)
-            reach = np.linalg.norm(field.nodes[b.nodes] - c[:, None], axis=-1).max(1) + half
-            d_new, _ = KDTree(field.nodes[first_new:]).query(c.astype(np.float32), k=1)
-            ids = block_voxels(b, d_new.reshape(-1) - half <= reach, self.volume.dims)
-            if len(ids):
-                centres = self.voxel_centres[ids]
-                kth = field.nodes[self.voxel_knn[ids, -1]] - centres
-                d, _ = KDTree(field.nodes[first_new:]).query(centres, k=1)
-                ids = ids[d.reshape(-1) ** 2 < np.einsum("ij,ij->i", kth, kth)]
-        for s in range(0, len(ids), self.params.voxel_chunk):
-            g = ids[s:s + self.params.voxel_chunk]
-            centres = self.voxel_centres[g]
-            self.voxel_knn[g], self.voxel_weights[g] = update_skinning(
-                self.voxel_knn[g], self.voxel_weights[g], centres, field, first_new)
-            self.voxel_fusion_weight[g] = node_distance_weight(
-                centres, field.nodes, self.voxel_knn[g], self.params.warp_field.node_radius_m)
-        self._update_blocks()
-
-    def _update_fusion_weights(self) -> None:
-        """w(x) of Sec. 3.2, from the canonical nodes only: it changes only when nodes are added."""
-        w = np.empty(self.volume.num_voxels, np.float32)
-        for start, stop, centres in self._chunks():
-            w[start:stop] = node_distance_weight(centres, self.field.nodes, self.voxel_knn[start:stop],
-                                                 self.params.warp_field.node_radius_m)
-        self.voxel_fusion_weight = w
-
-    def fusible_voxels(self, depth_m: np.ndarray) -> np.ndarray | None:
-        """Flat indices of the voxels that Eq. 4 may fuse this frame (None: all of them, when
-        culling is off). Whole blocks are dropped only when no voxel in them can land in front
-        of the depth + tau, so fusion gives the same volume as warping every voxel."""
-        p = self.params
-        if not p.cull_voxels:
-            return None
-        keep = fusible_blocks(self.blocks, self.field, invert(self.T_camera_to_world), depth_m, self.intrinsics,
-                              self.volume.truncation_m(p.tsdf), p.cull_margin_m)
-        return block_voxels(self.blocks, keep, self.volume.dims)
-
-    def warp_voxels(self, ids: np.ndarray | None = None) -> np.ndarray:
-        """Voxel centres (flat indices `ids`, default all) moved by the warp field W, world,
-        (n, 3) float32: the same dual quaternion blend as the surface (Sec. 3.2)."""
-        if ids is None:
-            return warp_points_fast(self.voxel_centres, self.voxel_knn, self.voxel_weights, self.field)
-        return warp_points_fast(self.voxel_centres[ids], self.voxel_knn[ids], self.voxel_weights[ids], self.field)
-
-    def _update_blocks(self) -> None:
-        self.blocks = voxel_blocks(self.volume, self.voxel_knn, self.field.num_nodes, self.params.cull_block)
-
     def _set_mesh(self, vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray) -> None:
         wf = self.field.params
         knn, weights = skin(vertices, self.field.nodes, wf.k_skin, self.field.sigma_m)
@@ -319,9 +246,7 @@ class DynamicFusionMethod:
         if self.volume is None:
             return {"volume": 0, "voxel_field": 0, "mesh": 0, "warp_field": 0}
         f = self.field
-        return {"volume": self.volume.nbytes,
-                "voxel_field": self.voxel_knn.nbytes + self.voxel_weights.nbytes + self.voxel_fusion_weight.nbytes
-                + self.voxel_centres.nbytes + self.blocks.nodes.nbytes,
+        return {"volume": self.volume.nbytes, "voxel_field": self.voxels.nbytes,
                 "mesh": self.mesh.nbytes,
                 "warp_field": f.nodes.nbytes + f.transforms.nbytes + f.graph.nbytes}
 

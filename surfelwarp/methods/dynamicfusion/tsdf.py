@@ -30,7 +30,8 @@ class TSDFParams:
     # 100 frames of full weight (~170 at the node weight of a surface voxel, ~0.6) averages out
     # sensor noise yet lets the canonical model still follow slow change.
     max_weight: float = 100.0
-    margin_m: float = 0.1            # added on every side of the first frame's bounding box
+    margin_m: float = 0.1            # added on every side of the first frame's bounding box, and of
+                                     # the depth seen outside the volume when it grows
     max_voxels: int = 8_000_000      # larger boxes get coarser voxels (see TSDFVolume.from_points)
                                      # and a truncation of at least two of them
 
@@ -94,6 +95,25 @@ class TSDFVolume:
         (a volume coarsened to fit max_voxels keeps a band two voxels wide; thinner, the zero
         crossing falls between voxels and the surface breaks up)."""
         return max(params.truncation_m, 2.0 * self.voxel_size)
+
+    def padding(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Voxels to add before and after the grid along each axis to cover the world box lo..hi."""
+        dims = np.array(self.dims)
+        first = np.floor((np.asarray(lo, np.float64) - self.origin) / self.voxel_size).astype(np.int64)
+        last = np.ceil((np.asarray(hi, np.float64) - self.origin) / self.voxel_size).astype(np.int64)
+        return np.maximum(-first, 0), np.maximum(last - (dims - 1), 0)
+
+    def padded(self, before: np.ndarray, after: np.ndarray) -> tuple["TSDFVolume", tuple[slice, ...]]:
+        """This volume on a grid extended by `before` and `after` voxels per axis (same voxels,
+        new ones unobserved), and where the old grid sits in the new one."""
+        before, dims = np.asarray(before, np.int64), np.array(self.dims)
+        grown = TSDFVolume.empty(self.origin - before * self.voxel_size, dims + before + np.asarray(after),
+                                 self.voxel_size, color=self.color is not None)
+        place = tuple(slice(int(b), int(b + d)) for b, d in zip(before, dims))
+        for name in ("tsdf", "weight", "color", "color_weight"):
+            if getattr(self, name) is not None:
+                getattr(grown, name)[place] = getattr(self, name)
+        return grown, place
 
     @property
     def dims(self) -> tuple[int, int, int]:

@@ -3,6 +3,7 @@ import subprocess
 import sys
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
@@ -23,9 +24,11 @@ from surfelwarp.preprocess import preprocess
 from surfelwarp.render.mesh_maps import render_mesh_maps
 from surfelwarp.run import run_sequence
 
+from conftest import write_sequence
+
 # 8 mm voxels (3 voxels of truncation, as the 4 mm default) keep the volumes small for tests.
 FAST = DynamicFusionParams(tsdf=TSDFParams(voxel_size_m=0.008, truncation_m=0.024))
-STAGES = {"solver_maps", "rigid", "predict", "nonrigid", "warp", "fusion", "marching_cubes", "extend", "warp_mesh"}
+STAGES = {"solver_maps", "rigid", "predict", "nonrigid", "grow", "warp", "fusion", "marching_cubes", "extend", "warp_mesh"}
 
 
 def run_df(seq_dir, out, params=FAST, frames=None, save_every=4):
@@ -102,11 +105,11 @@ def test_orbit_fuses_a_static_scene_seen_by_a_moving_camera(tmp_path):
     centres = method.volume.voxel_centres()
     k = method.params.warp_field.k_skin
     knn, weights = skin(centres, method.field.nodes, k, method.field.sigma_m)
-    same = np.all(np.sort(knn, 1) == np.sort(method.voxel_knn, 1), axis=1)
+    same = np.all(np.sort(knn, 1) == np.sort(method.voxels.knn, 1), axis=1)
     assert same.mean() > 0.9999     # ties between equidistant nodes may order differently
-    np.testing.assert_allclose(method.voxel_weights[same], weights[same], atol=1e-5)
+    np.testing.assert_allclose(method.voxels.weights[same], weights[same], atol=1e-5)
     fresh = node_distance_weight(centres, method.field.nodes, knn, method.params.warp_field.node_radius_m)
-    np.testing.assert_allclose(method.voxel_fusion_weight[same], fresh[same], atol=1e-5)
+    np.testing.assert_allclose(method.voxels.fusion_weight[same], fresh[same], atol=1e-5)
 
 
 @pytest.mark.slow
@@ -187,6 +190,32 @@ def test_culled_fusion_equals_fusing_every_voxel(bend, noise, most_kept):
     assert np.array_equal(full.tsdf, culled.tsdf) and np.array_equal(full.weight, culled.weight)
     print(f"kept {len(ids) / volume.num_voxels:.3f}")
     assert len(ids) <= most_kept * volume.num_voxels
+
+
+def test_volume_grows_over_surface_seen_later(tmp_path):
+    """The first frames see the wall's left half only; the volume grows over the right half when
+    it comes into view, on the same grid, and the mesh covers it; past max_voxels it says so."""
+    wall = np.full((48, 64), 1500, np.uint16)
+    left = wall.copy()
+    left[:, 32:] = 0
+    seq = write_sequence(tmp_path / "seq", frames=range(5))
+    for i in range(5):
+        cv2.imwrite(str(seq / f"frame-{i:06d}.depth.png"), left if i < 2 else wall)
+    params = DynamicFusionParams(tsdf=TSDFParams(voxel_size_m=0.02, truncation_m=0.06))
+    method, metrics = run_df(seq, tmp_path / "out", params, save_every=1)
+    frames = metrics["frames"]
+    assert [f["grown_voxels"] > 0 for f in frames[1:]] == [False, True, False, False]
+    assert frames[4]["voxels"] == frames[1]["voxels"] + frames[2]["grown_voxels"]
+    assert frames[4]["voxel_size_m"] == frames[0]["voxel_size_m"] == 0.02
+    first, _ = read_ply(tmp_path / "out" / "live" / "frame-000001.ply")
+    mesh, _ = read_ply(tmp_path / "out" / "live" / "frame-000004.ply")
+    # valid depth (10 px border cropped) spans x in -0.55..0.53 m at 1.5 m; the left half ends at 0
+    assert first["x"].max() < 0.05 and first["x"].min() < -0.45
+    assert mesh["x"].max() > 0.4 and mesh["x"].min() < -0.45 and np.abs(mesh["z"] - 1.5).max() < 0.02
+    small = replace(params, tsdf=replace(params.tsdf, max_voxels=frames[0]["voxels"] + 100))
+    _, capped = run_df(seq, tmp_path / "capped", small, save_every=1)
+    assert [f["outside_volume_full"] for f in capped["frames"][1:]] == [False, True, True, True]
+    assert capped["frames"][-1]["voxels"] == frames[0]["voxels"]
 
 
 def test_predicted_points_lie_on_the_canonical_surface(sheet):
