@@ -30,7 +30,10 @@ demo: setup
 	$(PY) -m surfelwarp synth sheet --out $(DEMO)/sheet --frames 40
 	$(PY) -m surfelwarp run $(DEMO)/sheet --out $(DEMO)/run --method surfelwarp
 	$(PY) -m surfelwarp eval $(DEMO)/run $(DEMO)/sheet
-	@echo "Demo outputs: $(DEMO)/run (live/*.ply, model.ply, metrics.json, surfels.png, eval.json)"
+	$(PY) -m surfelwarp view $(DEMO)/run
+	@echo "Demo outputs: $(DEMO)/run (live/*.ply, model.ply, model_mesh.ply, metrics.json, surfels.png, eval.json)"
+	@echo "  video of the saved frames: $(DEMO)/run/live.mp4 (pictures in $(DEMO)/run/render/)"
+	@echo "  the frames in a browser:   $(DEMO)/run/view.html"
 
 test: setup
 	$(PY) -m pytest -q

@@ -1,4 +1,4 @@
-"""`surfelwarp` command line: run, compare, bench, synth, eval (argparse only; the work is elsewhere)."""
+"""`surfelwarp` command line: run, compare, bench, mesh, view, synth, eval (argparse only; the work is elsewhere)."""
 from __future__ import annotations
 
 import argparse
@@ -49,6 +49,8 @@ def _add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--method", choices=METHODS, default="surfelwarp")
     p.add_argument("--config", type=Path, default=None, metavar="FILE",
                    help="the method's parameters to override, TOML or JSON (see docs/cli.md)")
+    p.add_argument("--no-render", action="store_true",
+                   help="no render/frame-%%06d.png pictures of the saved frames and no live.mp4")
     p.add_argument("--resume", action="store_true",
                    help="continue the run OUT holds from its last checkpoint (same input and parameters; "
                         "--max-frames may be larger)")
@@ -149,7 +151,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                         start=args.start, max_frames=args.max_frames)
     outputs = run_sequence(seq, out, _method(args, params, seq.intrinsics), save_every=args.save_every,
                            preprocess_params=preprocess, input_config=input_config(seq, args.start, args.max_frames),
-                           progress=False if args.no_progress else None, resume=args.resume)
+                           progress=False if args.no_progress else None, resume=args.resume,
+                           render=not args.no_render)
     s = outputs.summary()
     print(f"{s['frames']} frames, median {s['median_frame_seconds'] * 1000:.0f} ms/frame, "
           f"peak {s['peak_rss_mb']:.0f} MB; outputs in {out}/ (live/, model.ply, metrics.json)")
@@ -205,6 +208,22 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_mesh(args: argparse.Namespace) -> int:
+    from surfelwarp.report.mesh import mesh_run
+    path = mesh_run(args.out, args.frame, args.voxel_size)
+    print(f"mesh written to {path}")
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from surfelwarp.report.viewer import write_viewer
+    if not 0 < args.max_points:
+        raise InputError(None, f"--max-points must be positive, got {args.max_points}")
+    path = write_viewer(args.out, args.html, args.max_points)
+    print(f"viewer written to {path} (open it in a browser)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="surfelwarp", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -217,6 +236,19 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="time a sequence stage by stage (and against DynamicFusion, Open3D)")
     _add_bench_arguments(p)
     p.set_defaults(func=cmd_bench)
+    p = sub.add_parser("mesh", help="a triangle mesh of a run's model (model_mesh.ply) or of a saved live frame")
+    p.add_argument("out", type=Path, help="a run's output folder")
+    p.add_argument("--frame", type=int, default=None, metavar="N",
+                   help="mesh OUT/live/frame-N.ply into OUT/mesh/frame-N.ply (default: model.ply)")
+    p.add_argument("--voxel-size", type=float, default=None, metavar="M",
+                   help="grid spacing, metres (default: the surfels' median radius)")
+    p.set_defaults(func=cmd_mesh)
+    p = sub.add_parser("view", help="a self-contained HTML page showing the saved live frames")
+    p.add_argument("out", type=Path, help="a run's output folder")
+    p.add_argument("--html", type=Path, default=None, help="page to write (default OUT/view.html)")
+    p.add_argument("--max-points", type=int, default=150_000, metavar="N",
+                   help="points over all frames at most (uniformly subsampled)")
+    p.set_defaults(func=cmd_view)
     try:
         from surfelwarp.data_tools import evaluate, synth
     except ImportError:

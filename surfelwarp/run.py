@@ -6,14 +6,17 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from surfelwarp.errors import InputError
+from surfelwarp.geometry.surfel_mesh import mesh_of
 from surfelwarp.io import checkpoint
 from surfelwarp.io.outputs import RunOutputs, rss_mb
 from surfelwarp.io.sequence import Sequence
 from surfelwarp.methods.protocol import Method
 from surfelwarp.preprocess import PreprocessParams, preprocess
+from surfelwarp.render.views import frame_panel, live_view
 
 
 def input_config(seq: Sequence, start: int, max_frames: int | None) -> dict:
@@ -28,13 +31,54 @@ def _saves(position: int, count: int, save_every: int) -> bool:
     return position % save_every == 0 or position == count - 1
 
 
+def _resume(out_dir: Path, identity: dict, seq: Sequence, save_every: int, outputs: RunOutputs
+            ) -> tuple[Method, int]:
+    """The checkpointed method and the position of its next frame; outputs take its records."""
+    state = checkpoint.load(out_dir, identity)
+    if state.next_position > len(seq):
+        raise InputError(out_dir / checkpoint.NAME, f"checkpoint is {state.next_position} frames into the run, "
+                                                    f"more than the {len(seq)} asked for")
+    outputs.frames, outputs.skipped = state.frames, state.skipped
+    # A run cut short by --max-frames saved its last frame; a whole run would not have.
+    outputs.remove_saved({r.frame for r in outputs.frames[1:]} -
+                         {f.index for j, f in enumerate(seq.files) if _saves(j, len(seq), save_every)})
+    return state.method, state.next_position
+
+
+def _save_frame(outputs: RunOutputs, method: Method, seq: Sequence, frame: int, depth: np.ndarray,
+                color: np.ndarray | None, record, render: bool) -> None:
+    """The live PLY and, with `render`, the frame's picture (timed apart from the frame's total,
+    as writing is)."""
+    live = method.live_vertices()
+    outputs.save_live(frame, *live)
+    if render:
+        t = time.perf_counter()
+        if color is None and seq.has_color:      # the run's pictures keep one size
+            color = np.zeros(depth.shape + (3,), np.uint8)
+        outputs.save_render(frame, frame_panel(live_view(*live, seq.intrinsics), depth, color))
+        record.seconds["render"] = time.perf_counter() - t
+
+
+def _finish(outputs: RunOutputs, method: Method, render: bool) -> None:
+    """model.ply, model_mesh.ply (the method's own faces, or the surfels meshed), live.mp4."""
+    model = method.model_vertices()
+    outputs.save_model(*model)
+    mesh = mesh_of(*model)
+    outputs.save_mesh(mesh.vertices, mesh.normals, mesh.faces, mesh.colors)
+    if render:
+        outputs.write_video([r.frame for r in outputs.frames])
+    method.finish(outputs.out_dir, outputs.frames)
+
+
 def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: int = 10,
                  preprocess_params: PreprocessParams = PreprocessParams(), input_config: dict | None = None,
-                 progress: bool | None = None, resume: bool = False) -> RunOutputs:
+                 progress: bool | None = None, resume: bool = False, render: bool = True) -> RunOutputs:
     """Process every frame of `seq` with `method`, writing the contract's outputs to `out_dir`.
 
-    With every saved frame: its live PLY, the checkpoint, metrics.json, in that order (a run
-    killed between two of them resumes from a checkpoint no older than its metrics). `resume`:
+    With every saved frame: its live PLY (and with `render` its picture, render/frame-%06d.png),
+    the checkpoint, metrics.json, in that order (a run killed between two of them resumes from a
+    checkpoint no older than its metrics). At the end: model.ply, model_mesh.ply and with
+    `render` live.mp4 of the saved frames' pictures. `resume`:
     go on from out_dir's checkpoint (its method replaces `method`). On bad input mid-run,
     metrics.json is written for the frames done so far (with an "error" field) and the
     InputError propagates.
@@ -46,17 +90,7 @@ def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: in
     outputs = RunOutputs(out_dir, method.name, seq.root, config)
     outputs.missing = seq.missing
     identity = checkpoint.run_identity(method.name, seq.root, config)
-    first = 0
-    if resume:
-        state = checkpoint.load(out_dir, identity)
-        method, first = state.method, state.next_position
-        if first > len(seq):
-            raise InputError(out_dir / checkpoint.NAME, f"checkpoint is {first} frames into the run, more than "
-                                                        f"the {len(seq)} asked for")
-        outputs.frames, outputs.skipped = state.frames, state.skipped
-        # A run cut short by --max-frames saved its last frame; a whole run would not have.
-        outputs.remove_live({r.frame for r in outputs.frames[1:]} -
-                            {f.index for j, f in enumerate(seq.files) if _saves(j, len(seq), save_every)})
+    method, first = _resume(out_dir, identity, seq, save_every, outputs) if resume else (method, 0)
     claimed = resume
     # disable=None: tqdm shows the bar only when stderr is a terminal.
     bar = tqdm(total=len(seq), initial=first, unit="frame", desc=method.name,
@@ -83,7 +117,7 @@ def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: in
             record.rss_mb = round(rss_mb(), 1)
             outputs.add_frame(record)
             if _saves(i, len(seq), save_every) or len(outputs.frames) == 1:
-                outputs.save_live(files.index, *method.live_vertices())
+                _save_frame(outputs, method, seq, files.index, depth, color, record, render)
                 checkpoint.save(out_dir, checkpoint.Checkpoint(identity, i + 1, method, outputs.frames,
                                                                outputs.skipped))
                 outputs.write_metrics()
@@ -92,8 +126,7 @@ def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: in
         if not method.started:
             raise InputError(seq.root, f"no frame has enough valid depth to start a model "
                                        f"({len(outputs.skipped)} skipped); nothing was written")
-        outputs.save_model(*method.model_vertices())
-        method.finish(out_dir, outputs.frames)
+        _finish(outputs, method, render)
     except InputError as exc:
         outputs.error = str(exc)
         raise

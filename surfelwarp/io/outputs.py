@@ -8,14 +8,16 @@ first frame is processed (`claim`), so a run that fails before that leaves the e
 from __future__ import annotations
 
 import json
+import os
 import resource
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from surfelwarp.errors import OutputError
-from surfelwarp.io.ply import write_atomic, write_ply
+from surfelwarp.io.ply import mesh_table, write_atomic, write_ply
 
 
 @dataclass
@@ -92,9 +94,50 @@ class RunOutputs:
         except OSError as exc:
             raise OutputError(self.out_dir, f"cannot remove an earlier run's outputs ({exc.strerror})") from None
 
-    def remove_live(self, frames: set[int]) -> None:
+    def remove_saved(self, frames: set[int]) -> None:
+        """The live PLYs and renders of these frames."""
         for frame in frames:
             self.live_path(frame).unlink(missing_ok=True)
+            self.render_path(frame).unlink(missing_ok=True)
+
+    def render_path(self, frame: int) -> Path:
+        return self.out_dir / "render" / f"frame-{frame:06d}.png"
+
+    def save_render(self, frame: int, rgb: np.ndarray) -> None:
+        ok, png = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
+        if not ok:
+            raise OutputError(self.render_path(frame), "cannot encode the render")
+        write_atomic(self.render_path(frame), png.tobytes())
+
+    def write_video(self, frames: list[int], fps: float = 10.0) -> Path | None:
+        """OUT/live.mp4 of the renders of `frames` that exist, one video frame each (None: none)."""
+        paths = [p for p in map(self.render_path, frames) if p.is_file()]
+        if not paths:
+            return None
+        first = cv2.imread(str(paths[0]))
+        path = self.out_dir / "live.mp4"
+        tmp = path.with_name(f".live.tmp{os.getpid()}.mp4")
+        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, first.shape[1::-1])
+        try:
+            if not writer.isOpened():
+                raise OutputError(path, "cannot write (OpenCV's video writer did not open)")
+            for p in paths:
+                image = cv2.imread(str(p))
+                if image is None or image.shape != first.shape:
+                    raise OutputError(p, "render cannot be read, or differs in size from the first")
+                writer.write(image)
+            writer.release()
+            os.replace(tmp, path)
+        except OSError as exc:
+            raise OutputError(path, f"cannot write ({exc.strerror})") from None
+        finally:
+            writer.release()
+            tmp.unlink(missing_ok=True)
+        return path
+
+    def save_mesh(self, vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray,
+                  color: np.ndarray | None = None) -> None:
+        write_ply(self.out_dir / "model_mesh.ply", mesh_table(vertices, normals, color), faces)
 
     def save_model(self, vertices: np.ndarray, faces: np.ndarray | None = None) -> None:
         write_ply(self.out_dir / "model.ply", vertices, faces)

@@ -46,6 +46,18 @@ def vertex_table(position, normal, ref_position, radius=None, confidence=None, i
     return table
 
 
+def mesh_table(vertices, normals, color=None) -> np.ndarray:
+    """A mesh's vertex record (CONTRACT.md, model_mesh.ply): float32 x y z nx ny nz [uchar red green blue]."""
+    fields = [(name, "<f4") for name in VERTEX_FIELDS[:6]] + [(name, "u1") for name in COLOR_FIELDS * (color is not None)]
+    table = np.empty(len(vertices), dtype=fields)
+    for i, name in enumerate("xyz"):
+        table[name], table["n" + name] = vertices[:, i], normals[:, i]
+    if color is not None:
+        for i, name in enumerate(COLOR_FIELDS):
+            table[name] = color[:, i]
+    return table
+
+
 def write_atomic(path: Path, data: bytes) -> None:
     """Write to a temporary file beside `path`, then rename over it: readers never see half a file."""
     write_atomic_with(path, lambda f: f.write(data))

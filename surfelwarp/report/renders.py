@@ -8,38 +8,16 @@ import numpy as np
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.io.ply import read_ply
 from surfelwarp.preprocess import PreprocessParams, preprocess
+from surfelwarp.render.views import live_view, normal_colours
 from surfelwarp.report.runner import METHODS
 
-
-def normal_colours(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(H, W, 3) float RGB in [0, 1]: the usual normal-map colouring in a y-up, z-toward-viewer
-    frame (a normal facing the camera is light blue); white where mask is False."""
-    n = normals * np.array([1.0, -1.0, -1.0], np.float32)
-    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
-    return np.where(mask[..., None], 0.5 + 0.5 * n, 1.0)
+__all__ = ["normal_colours", "render_live", "render_live_normals", "input_normals", "pick_frames",
+           "crop_to_content"]
 
 
 def render_live(ply_path: Path, intrinsics: Intrinsics, colour: bool = False) -> np.ndarray:
-    """(H, W, 3) float RGB in [0, 1] of a live PLY from its camera: the normal map, or with
-    `colour` the points' fused red green blue (white where nothing is drawn; the normal map if
-    the PLY has no colour)."""
-    from surfelwarp.render.mesh_maps import render_mesh_maps
-    from surfelwarp.render.solver_maps import render_solver_maps
-
-    table, faces = read_ply(ply_path)
-    stack = lambda *names: np.stack([table[n] for n in names], -1).astype(np.float32)  # noqa: E731
-    points, normals = stack("x", "y", "z"), stack("nx", "ny", "nz")
-    if faces is not None and len(faces):
-        maps = render_mesh_maps(points, normals, faces, intrinsics)
-    else:
-        radius = table["radius"].astype(np.float32) if "radius" in table.dtype.names \
-            else np.sqrt(2.0) * points[:, 2] / intrinsics.focal_px
-        maps = render_solver_maps(points, normals, radius, intrinsics)
-    drawn = maps.index >= 0
-    if not (colour and "red" in table.dtype.names):
-        return normal_colours(maps.normal, drawn)
-    rgb = stack("red", "green", "blue") / 255.0
-    return np.where(drawn[..., None], rgb[np.maximum(maps.index, 0)], 1.0)
+    """render.views.live_view of a live PLY file."""
+    return live_view(*read_ply(ply_path), intrinsics, colour)
 
 
 def render_live_normals(ply_path: Path, intrinsics: Intrinsics) -> np.ndarray:

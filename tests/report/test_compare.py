@@ -126,7 +126,7 @@ def test_cli_rejects_bad_input_with_status_2(tmp_path):
     out = tmp_path / "out"
     (tmp_path / "empty").mkdir()
     assert str(tmp_path / "empty") in run(tmp_path / "empty", "--out", out)      # no known layout
-    assert "--voxel-size must be positive" in run(tmp_path / "missing", "--out", out, "--voxel-size", "-1")
+    assert "--voxel-size must be in (0, 1) metres" in run(tmp_path / "missing", "--out", out, "--voxel-size", "-1")
     (tmp_path / "file").write_text("x")
     assert "not a folder" in run(tmp_path / "empty", "--out", tmp_path / "file")
     assert not out.exists()
