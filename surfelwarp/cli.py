@@ -1,7 +1,9 @@
-"""`surfelwarp` command line: run, compare, bench, mesh, view, synth, eval (argparse only; the work is elsewhere)."""
+"""`surfelwarp` command line: run, batch, compare, bench, mesh, view, synth, eval (argparse only; the work is
+elsewhere)."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -30,6 +32,12 @@ def _add_input_arguments(p: argparse.ArgumentParser, out_help: str, out_required
     """The flags `run`, `compare` and `bench` share: the input, its reading and preprocessing, the outputs."""
     p.add_argument("input", type=Path, help="sequence folder (any layout of docs/formats.md)")
     p.add_argument("--out", type=Path, required=out_required, default=None, help=out_help)
+    _add_reading_arguments(p, save_every)
+    p.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
+
+
+def _add_reading_arguments(p: argparse.ArgumentParser, save_every: int = 10) -> None:
+    """How a sequence is read, preprocessed and saved (shared by run, compare, bench, batch)."""
     p.add_argument("--save-every", type=_positive_int, default=save_every, metavar="K",
                    help="write live/frame-%%06d.ply every K processed frames (and the last)")
     p.add_argument("--intrinsics", metavar="FX,FY,CX,CY", help="override the intrinsics file")
@@ -41,19 +49,23 @@ def _add_input_arguments(p: argparse.ArgumentParser, out_help: str, out_required
     p.add_argument("--no-fusion", action="store_true",
                    help="SurfelWarp as template tracking: the first frame's surfels are tracked, never fused "
                         "or extended")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
 
 
 def _add_run_arguments(p: argparse.ArgumentParser) -> None:
     _add_input_arguments(p, "output folder")
+    _add_method_arguments(p)
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run OUT holds from its last checkpoint (same input and parameters; "
+                        "--max-frames may be larger)")
+
+
+def _add_method_arguments(p: argparse.ArgumentParser) -> None:
+    """The method and its parameters (shared by run and batch)."""
     p.add_argument("--method", choices=METHODS, default="surfelwarp")
     p.add_argument("--config", type=Path, default=None, metavar="FILE",
                    help="the method's parameters to override, TOML or JSON (see docs/cli.md)")
     p.add_argument("--no-render", action="store_true",
                    help="no render/frame-%%06d.png pictures of the saved frames and no live.mp4")
-    p.add_argument("--resume", action="store_true",
-                   help="continue the run OUT holds from its last checkpoint (same input and parameters; "
-                        "--max-frames may be larger)")
     p.add_argument("--camera", choices=("moving", "static"), default=None,
                    help="'static': the camera does not move, every motion is the scene's; "
                         "'moving' (default): its pose is estimated (config key tracking.camera)")
@@ -140,22 +152,29 @@ def check_out_folder(input_path: Path, out: Path) -> Path:
     return out
 
 
-def cmd_run(args: argparse.Namespace) -> int:
+def prepare_run(args: argparse.Namespace) -> dict:
+    """`run`'s flags checked and turned into run_sequence's arguments (the sequence opened, the
+    method built): the keyword arguments of run_sequence without `resume`."""
     from surfelwarp.io.sequence import open_sequence
-    from surfelwarp.run import input_config, run_sequence
+    from surfelwarp.run import input_config
 
     params = _params(args)
     preprocess = _preprocess_params(args)
     out = check_out_folder(args.input, args.out)
     seq = open_sequence(args.input, intrinsics=_intrinsics(args), depth_scale=args.depth_scale,
                         start=args.start, max_frames=args.max_frames)
-    outputs = run_sequence(seq, out, _method(args, params, seq.intrinsics), save_every=args.save_every,
-                           preprocess_params=preprocess, input_config=input_config(seq, args.start, args.max_frames),
-                           progress=False if args.no_progress else None, resume=args.resume,
-                           render=not args.no_render)
-    s = outputs.summary()
+    return dict(seq=seq, out_dir=out, method=_method(args, params, seq.intrinsics), save_every=args.save_every,
+                preprocess_params=preprocess, input_config=input_config(seq, args.start, args.max_frames),
+                progress=False if args.no_progress else None, render=not args.no_render)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from surfelwarp.run import run_sequence
+
+    setup = prepare_run(args)
+    s = run_sequence(**setup, resume=args.resume).summary()
     print(f"{s['frames']} frames, median {s['median_frame_seconds'] * 1000:.0f} ms/frame, "
-          f"peak {s['peak_rss_mb']:.0f} MB; outputs in {out}/ (live/, model.ply, metrics.json)")
+          f"peak {s['peak_rss_mb']:.0f} MB; outputs in {setup['out_dir']}/ (live/, model.ply, metrics.json)")
     return 0
 
 
@@ -224,6 +243,45 @@ def cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_options() -> argparse.ArgumentParser:
+    """The run flags a batch passes on to each sequence's run."""
+    p = argparse.ArgumentParser(add_help=False)
+    _add_reading_arguments(p)
+    _add_method_arguments(p)
+    return p
+
+
+def run_flags(args: argparse.Namespace) -> list[str]:
+    """The run flags given in `args` (those that differ from their defaults), as argv."""
+    flags = []
+    for action in _run_options()._actions:
+        value = getattr(args, action.dest)
+        if value == action.default:
+            continue
+        flag = action.option_strings[0]
+        if isinstance(value, Path):     # the workers may run elsewhere: no relative paths
+            value = value.resolve()
+        if isinstance(action, argparse._StoreTrueAction):
+            flags.append(flag)
+        else:
+            flags += [flag, ",".join(map(str, value)) if isinstance(value, list) else str(value)]
+    return flags
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    from surfelwarp.batch import batch
+
+    if args.out.exists() and not args.out.is_dir():
+        raise InputError(args.out, "output path exists and is not a folder")
+    _params(args), _preprocess_params(args), _intrinsics(args)   # bad flags end the batch before it starts
+    results = batch(args.inputs, args.out, run_flags(args), args.workers, args.scheduler,
+                    False if args.no_progress else None)
+    counts = {s: sum(r.status == s for r in results) for s in ("done", "skipped", "failed")}
+    print(f"{len(results)} sequences: {counts['done']} done, {counts['skipped']} skipped, {counts['failed']} failed; "
+          f"summary in {args.out / 'summary.csv'}")
+    return 1 if counts["failed"] else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="surfelwarp", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -236,6 +294,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="time a sequence stage by stage (and against DynamicFusion, Open3D)")
     _add_bench_arguments(p)
     p.set_defaults(func=cmd_bench)
+    p = sub.add_parser("batch", parents=[_run_options()],
+                       help="many sequences at once on Dask, each as `run` would (DIR/<name>/, DIR/summary.csv)")
+    p.add_argument("inputs", type=Path, nargs="+", metavar="INPUT", help="sequence folders")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="one sub-folder per sequence, and the summary")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=_positive_int, default=os.cpu_count() or 1, metavar="N",
+                       help="worker processes of a local Dask cluster (default: the machine's cores)")
+    where.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                       help="an existing Dask scheduler, e.g. tcp://10.0.0.5:8786 (dask scheduler / dask worker)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
+    p.set_defaults(func=cmd_batch)
     p = sub.add_parser("mesh", help="a triangle mesh of a run's model (model_mesh.ply) or of a saved live frame")
     p.add_argument("out", type=Path, help="a run's output folder")
     p.add_argument("--frame", type=int, default=None, metavar="N",

@@ -26,6 +26,13 @@ def input_config(seq: Sequence, start: int, max_frames: int | None) -> dict:
             "intrinsics": {k: getattr(seq.intrinsics, k) for k in ("fx", "fy", "cx", "cy", "width", "height")}}
 
 
+def run_config(method: Method, save_every: int, preprocess_params: PreprocessParams, input_config: dict | None
+               ) -> dict:
+    """metrics.json's "config": everything in force."""
+    return {"input": input_config or {}, "preprocess": asdict(preprocess_params), "method": method.config(),
+            "save_every": save_every}
+
+
 def _saves(position: int, count: int, save_every: int) -> bool:
     """Whether the frame at `position` of `count` is saved (the first processed one is, too)."""
     return position % save_every == 0 or position == count - 1
@@ -85,8 +92,7 @@ def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: in
     """
     for note in seq.notes:      # once per run, before the progress bar
         print(f"surfelwarp: note: {note}", file=sys.stderr)
-    config = {"input": input_config or {}, "preprocess": asdict(preprocess_params),
-              "method": method.config(), "save_every": save_every}
+    config = run_config(method, save_every, preprocess_params, input_config)
     outputs = RunOutputs(out_dir, method.name, seq.root, config)
     outputs.missing = seq.missing
     identity = checkpoint.run_identity(method.name, seq.root, config)
