@@ -17,6 +17,7 @@ import time
 import traceback
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import Callable
 
 from tqdm import tqdm
 
@@ -65,9 +66,9 @@ def _complete(out: Path, identity: dict, frames: int) -> dict | None:
     return metrics if done == identity and finished else None
 
 
-def run_task(name: str, input_path: str, out: str, run_flags: list[str]) -> TaskResult:
-    """One sequence, on a worker: skipped if complete, resumed from a checkpoint, or run."""
-    from surfelwarp.cli import build_parser, prepare_run
+def run_task(name: str, input_path: str, out: str, prepare: Callable[[str, str], dict]) -> TaskResult:
+    """One sequence, on a worker: skipped if complete, resumed from a checkpoint, or run.
+    prepare(input, out) gives run_sequence's arguments (the CLI's `run` flags, checked)."""
     from surfelwarp.io.checkpoint import NAME, run_identity
     from surfelwarp.io.outputs import peak_rss_mb
     from surfelwarp.run import run_config, run_sequence
@@ -75,8 +76,7 @@ def run_task(name: str, input_path: str, out: str, run_flags: list[str]) -> Task
     start = time.perf_counter()
     result = TaskResult(name, input_path, "failed")
     try:
-        args = build_parser().parse_args(["run", input_path, "--out", out, "--no-progress", *run_flags])
-        setup = prepare_run(args)
+        setup = prepare(input_path, out)
         seq, method = setup["seq"], setup["method"]
         config = run_config(method, setup["save_every"], setup["preprocess_params"], setup["input_config"])
         identity = run_identity(method.name, seq.root, config)
@@ -124,7 +124,7 @@ def _evaluate(out: Path, seq_root: Path) -> dict:
     return {k: v for k, v in figures.items() if v is not None}
 
 
-def batch(inputs: list[Path], out_dir: Path, run_flags: list[str], workers: int = 2,
+def batch(inputs: list[Path], out_dir: Path, prepare: Callable[[str, str], dict], workers: int = 2,
           scheduler: str | None = None, progress: bool | None = None) -> list[TaskResult]:
     """Every input as one task; the results in input order (summary files written)."""
     import dask
@@ -143,7 +143,7 @@ def batch(inputs: list[Path], out_dir: Path, run_flags: list[str], workers: int 
     results: dict[str, TaskResult] = {}
     try:
         futures = {client.submit(run_task, name, str(Path(path).resolve()), str((out_dir / name).resolve()),
-                                 run_flags, key=f"surfelwarp-{name}", pure=False): name
+                                 prepare, key=f"surfelwarp-{name}", pure=False): name
                    for name, path in zip(names, inputs)}
         start = time.perf_counter()
         bar = tqdm(total=len(futures), unit="sequence", desc="batch", disable=None if progress is None else not progress)

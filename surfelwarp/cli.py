@@ -268,13 +268,20 @@ def run_flags(args: argparse.Namespace) -> list[str]:
     return flags
 
 
+def batch_setup(flags: list[str], input_path: str, out: str) -> dict:
+    """prepare_run of `run INPUT --out OUT FLAGS` (on a batch's worker)."""
+    return prepare_run(build_parser().parse_args(["run", input_path, "--out", out, "--no-progress", *flags]))
+
+
 def cmd_batch(args: argparse.Namespace) -> int:
+    from functools import partial
+
     from surfelwarp.batch import batch
 
     if args.out.exists() and not args.out.is_dir():
         raise InputError(args.out, "output path exists and is not a folder")
     _params(args), _preprocess_params(args), _intrinsics(args)   # bad flags end the batch before it starts
-    results = batch(args.inputs, args.out, run_flags(args), args.workers, args.scheduler,
+    results = batch(args.inputs, args.out, partial(batch_setup, run_flags(args)), args.workers, args.scheduler,
                     False if args.no_progress else None)
     counts = {s: sum(r.status == s for r in results) for s in ("done", "skipped", "failed")}
     print(f"{len(results)} sequences: {counts['done']} done, {counts['skipped']} skipped, {counts['failed']} failed; "

@@ -11,7 +11,7 @@ TOOLS = Path(__file__).resolve().parents[1] / "data_tools"
 # A unit may import only units of a lower rank (leaf utilities import nothing of the package).
 RANK = {"errors": 0, "timing": 0, "geometry": 1, "io": 2, "render": 2, "preprocess": 2, "deform": 3,
         "tracking": 4, "methods": 5, "methods.surfelwarp": 5.5, "methods.dynamicfusion": 5.5, "config": 6,
-        "run": 6, "data_tools": 7, "report": 8, "cli": 9, "__main__": 10}
+        "run": 6, "data_tools": 7, "batch": 7.5, "report": 8, "cli": 9, "__main__": 10}
 
 
 def unit(module: str) -> str:

@@ -4,6 +4,7 @@ import csv
 import os
 import threading
 import time
+from functools import partial
 
 import pytest
 
@@ -11,6 +12,7 @@ pytest.importorskip("dask.distributed")
 from dask.distributed import Client, LocalCluster  # noqa: E402
 
 from surfelwarp.batch import batch, unique_names  # noqa: E402
+from surfelwarp.cli import batch_setup  # noqa: E402
 
 from conftest import two_colours, write_sequence  # noqa: E402
 from test_faults import run_here  # noqa: E402
@@ -55,7 +57,8 @@ def test_a_killed_worker_runs_its_sequence_again(tmp_path):
                       silence_logs=40) as cluster, Client(cluster) as client:
         results = []
         worker = threading.Thread(target=lambda: results.extend(
-            batch([long, short], out, ["--save-every", "5"], scheduler=cluster.scheduler_address, progress=False)))
+            batch([long, short], out, partial(batch_setup, ["--save-every", "5"]), scheduler=cluster.scheduler_address,
+                  progress=False)))
         worker.start()
         deadline = time.time() + 120
         while not (out / "long" / "live" / "frame-000010.ply").exists():
