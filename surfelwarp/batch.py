@@ -58,7 +58,8 @@ def _complete(out: Path, identity: dict, frames: int) -> dict | None:
         metrics = json.loads((out / "metrics.json").read_text())
     except (OSError, ValueError):
         return None
-    if not (out / "model.ply").is_file() or "error" in metrics:
+    # model_mesh.ply is written after model.ply and before the last metrics.json
+    if not (out / "model_mesh.ply").is_file() or "error" in metrics:
         return None
     done = run_identity(metrics.get("method"), Path(metrics.get("input", "")), metrics.get("config", {}))
     summary = metrics.get("summary", {})

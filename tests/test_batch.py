@@ -9,6 +9,7 @@ from functools import partial
 import pytest
 
 pytest.importorskip("dask.distributed")
+pytestmark = pytest.mark.slow      # clusters of worker processes: seconds each
 from dask.distributed import Client, LocalCluster  # noqa: E402
 
 from surfelwarp.batch import batch, unique_names  # noqa: E402

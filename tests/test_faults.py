@@ -83,6 +83,7 @@ def touch_run(touch, tmp_path_factory) -> Path:
 
 # ---------------------------------------------------------------- resume
 
+@pytest.mark.slow
 def test_kill_then_resume_gives_the_uninterrupted_run(touch, touch_run, tmp_path):
     out = tmp_path / "out"
     proc = subprocess.Popen([sys.executable, "-m", "surfelwarp", "run", str(touch), "--out", str(out),
@@ -223,6 +224,7 @@ def test_principal_point_outside_the_image_in_a_file(tmp_path):
     assert_clean_error(code, err, "depthIntrinsics.txt", "principal point (32, -5)")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fail_at", [1, 4, 9])
 def test_full_disk_ends_in_one_line_and_the_run_resumes(tmp_path, monkeypatch, fail_at):
     """The fail_at-th file written fails as on a full disk: one line, exit 2, no temporary
@@ -288,6 +290,7 @@ def damage(path: Path, rng: random.Random) -> None:
     path.write_bytes(bytes(data))
 
 
+@pytest.mark.slow
 def test_fuzz_every_case_is_exit_0_or_one_line(tmp_path, capfd):
     """Seeded: damaged depth, colour and intrinsics files, config values of every type and
     range, flags; every case ends with exit 0, or exit 2 and one line (read at the file
