@@ -49,8 +49,11 @@ def mesh_of(table: np.ndarray, faces: np.ndarray | None = None, voxel_m: float |
 def mesh_surfels(points: np.ndarray, normals: np.ndarray, voxel_m: float, colors: np.ndarray | None = None,
                  k: int = 8, chunk: int = 64) -> SurfelMesh:
     """Points and unit normals (N, 3) (any frame, metres) -> SurfelMesh in the same frame."""
-    points = np.ascontiguousarray(points, np.float32)
-    normals = np.asarray(normals, np.float32)
+    # Damaged or diverged surfels (non-finite, or kilometres away) are no surface.
+    points, normals = np.asarray(points, np.float32), np.asarray(normals, np.float32)
+    keep = np.isfinite(points).all(1) & np.isfinite(normals).all(1) & (np.abs(points) < 1e3).all(1)
+    points, normals = np.ascontiguousarray(points[keep]), normals[keep]
+    colors = None if colors is None else np.asarray(colors)[keep]
     empty = SurfelMesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32),
                        None if colors is None else np.zeros((0, 3), np.uint8))
     if len(points) < 4:

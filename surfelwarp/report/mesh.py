@@ -25,7 +25,7 @@ def mesh_run(out_dir: Path, frame: int | None = None, voxel_m: float | None = No
     try:
         table, faces = read_ply(source)
         mesh = mesh_of(table, faces, voxel_m)
-    except (ValueError, KeyError, IndexError) as exc:
+    except (ValueError, KeyError, IndexError, OSError, UnicodeDecodeError) as exc:
         raise InputError(source, f"cannot read the PLY ({exc.__class__.__name__})") from None
     write_ply(target, mesh_table(mesh.vertices, mesh.normals, mesh.colors), mesh.faces)
     return target

@@ -69,6 +69,11 @@ def test_colours_and_degenerate_input():
     mesh = mesh_surfels(np.concatenate([a, b]), np.concatenate([na, nb]), 0.002, colors)
     left, right = mesh.vertices[:, 0] < -0.01, mesh.vertices[:, 0] > 0.01
     assert np.all(mesh.colors[left] == [255, 0, 0]) and np.all(mesh.colors[right] == [0, 0, 255])
+    # damaged surfels (NaN, a kilometre away) are left out, the rest meshed as before
+    junk = np.array([[np.nan, 0, 1], [1e30, 0, 1], [0, 0, 2e3]])
+    noisy = mesh_surfels(np.concatenate([a, b, junk]), np.concatenate([na, nb, na[:3]]), 0.002,
+                         np.concatenate([colors, colors[:3]]))
+    assert np.array_equal(noisy.faces, mesh.faces) and np.array_equal(noisy.vertices, mesh.vertices)
     empty = mesh_surfels(a[:3], na[:3], 0.002, colors[:3])
     assert empty.faces.shape == (0, 3) and empty.colors.shape == (0, 3)
     assert voxel_size_for(np.array([0.001, 0.002, 0.003, np.nan])) == 0.002
