@@ -27,8 +27,9 @@ class SurfelMesh:
 
 def voxel_size_for(radius: np.ndarray) -> float:
     """The surfels' median radius: the grid resolves what the surfels do, and no finer."""
-    r = np.asarray(radius, np.float64)
-    r = r[np.isfinite(r) & (r > 0)]
+    with np.errstate(all="ignore"):
+        r = np.asarray(radius, np.float64)
+        r = r[np.isfinite(r) & (r > 0)]
     return float(np.clip(np.median(r), 5e-4, 0.05)) if len(r) else 0.004
 
 
@@ -50,8 +51,10 @@ def mesh_surfels(points: np.ndarray, normals: np.ndarray, voxel_m: float, colors
                  k: int = 8, chunk: int = 64) -> SurfelMesh:
     """Points and unit normals (N, 3) (any frame, metres) -> SurfelMesh in the same frame."""
     # Damaged or diverged surfels (non-finite, or kilometres away) are no surface.
-    points, normals = np.asarray(points, np.float32), np.asarray(normals, np.float32)
-    keep = np.isfinite(points).all(1) & np.isfinite(normals).all(1) & (np.abs(points) < 1e3).all(1)
+    with np.errstate(all="ignore"):
+        points, normals = np.asarray(points, np.float32), np.asarray(normals, np.float32)
+        length = np.linalg.norm(normals, axis=1)
+        keep = (np.abs(points) < 1e3).all(1) & (np.abs(length - 1) < 0.1)
     points, normals = np.ascontiguousarray(points[keep]), normals[keep]
     colors = None if colors is None else np.asarray(colors)[keep]
     empty = SurfelMesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32),

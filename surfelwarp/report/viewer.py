@@ -54,13 +54,14 @@ def load(path: Path, share: tuple[int, int], seed: int) -> tuple[int, np.ndarray
         keep = min(count, count * share[0] // share[1])     # in integers: the sum cannot overshoot
         table = table[np.sort(np.random.default_rng(seed).permutation(count)[:keep])]
         stack = lambda *fields: np.stack([table[f] for f in fields], -1).astype(np.float32)  # noqa: E731
-        points = stack("x", "y", "z") * TO_VIEWER
-        if {"red", "green", "blue"} <= set(table.dtype.names):
-            colours = stack("red", "green", "blue").astype(np.uint8)
-        else:
-            normals = stack("nx", "ny", "nz") * TO_VIEWER
-            normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-            colours = np.clip(np.rint(127.5 + 127.5 * normals), 0, 255).astype(np.uint8)
+        with np.errstate(all="ignore"):     # a damaged file's inf and NaN are dropped below
+            points = stack("x", "y", "z") * TO_VIEWER
+            if {"red", "green", "blue"} <= set(table.dtype.names):
+                colours = stack("red", "green", "blue").astype(np.uint8)
+            else:
+                normals = stack("nx", "ny", "nz") * TO_VIEWER
+                normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+                colours = np.clip(np.rint(127.5 + 127.5 * np.nan_to_num(normals)), 0, 255).astype(np.uint8)
     except DAMAGED as exc:
         raise InputError(path, f"damaged PLY ({exc.__class__.__name__}: {exc})".splitlines()[0]) from None
     finite = np.isfinite(points).all(axis=1)
