@@ -81,3 +81,13 @@ def test_bad_run_flags_end_the_batch_before_it_starts(tmp_path):
     seq = write_sequence(tmp_path / "seq", frames=range(2))
     code, err = run_here("batch", seq, "--out", tmp_path / "out", "--config", tmp_path / "missing.toml")
     assert code == 2 and "missing.toml" in err and not (tmp_path / "out").exists()
+
+
+def test_ground_truth_adds_eval_figures(tmp_path):
+    from surfelwarp.data_tools import synth
+    seq = synth.generate("sheet", tmp_path / "sheet", frames=4, size=(160, 120))
+    out = tmp_path / "out"
+    code, err = run_here("batch", seq, "--out", out, "--workers", 1, "--save-every", 1, "--no-render")
+    assert code == 0, err
+    row = rows(out)["sheet"]
+    assert row["status"] == "done" and 0 < float(row["epe_mean_mm"]) < 20 and float(row["accuracy_median_mm"]) > 0
