@@ -340,6 +340,7 @@ def test_fuzz_every_case_is_exit_0_or_one_line(tmp_path, capfd):
         assert files_of(seq) == before, (case, args)
         assert sorted(p.name for p in work.iterdir()) in (["seq"], ["out", "seq"], ["config.json", "seq"],
                                                         ["config.json", "out", "seq"]), (case, args)
+    print(f"fuzz outcomes by exit status: {outcomes}")
     assert outcomes[0] >= 30 and outcomes[2] >= 100, outcomes
     assert time.time() - started < 120
 
