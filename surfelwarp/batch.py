@@ -140,7 +140,10 @@ def batch(inputs: list[Path], out_dir: Path, prepare: Callable[[str, str], dict]
                                    silence_logs=40)
         client = Client(cluster)
     else:
-        cluster, client = None, Client(scheduler, timeout="30s")
+        try:
+            cluster, client = None, Client(scheduler)     # waits distributed.comm.timeouts.connect
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise InputError(None, f"--scheduler {scheduler}: cannot connect ({exc.__class__.__name__})") from None
     results: dict[str, TaskResult] = {}
     try:
         futures = {client.submit(run_task, name, str(Path(path).resolve()), str((out_dir / name).resolve()),

@@ -81,6 +81,10 @@ def test_bad_run_flags_end_the_batch_before_it_starts(tmp_path):
     seq = write_sequence(tmp_path / "seq", frames=range(2))
     code, err = run_here("batch", seq, "--out", tmp_path / "out", "--config", tmp_path / "missing.toml")
     assert code == 2 and "missing.toml" in err and not (tmp_path / "out").exists()
+    import dask
+    with dask.config.set({"distributed.comm.timeouts.connect": "2s"}):
+        code, err = run_here("batch", seq, "--out", tmp_path / "out", "--scheduler", "tcp://127.0.0.1:9")
+    assert code == 2 and err.strip() == "surfelwarp: error: --scheduler tcp://127.0.0.1:9: cannot connect (OSError)", err
 
 
 def test_ground_truth_adds_eval_figures(tmp_path):
