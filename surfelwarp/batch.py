@@ -15,6 +15,7 @@ import io
 import json
 import time
 import traceback
+import uuid
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Callable
@@ -104,7 +105,8 @@ def run_task(name: str, input_path: str, out: str, prepare: Callable[[str, str],
         result.message = f"bad run flags (exit {exc.code})"
     except Exception as exc:                       # a bug: the batch goes on, the row says where
         frame = traceback.extract_tb(exc.__traceback__)[-1]
-        result.message = f"internal error {exc.__class__.__name__}: {exc} ({Path(frame.filename).name}:{frame.lineno})"
+        first_line = (str(exc).splitlines() or [""])[0]
+        result.message = f"internal error {exc.__class__.__name__}: {first_line} ({Path(frame.filename).name}:{frame.lineno})"
     result.seconds = time.perf_counter() - start
     result.peak_rss_mb = result.peak_rss_mb or round(peak_rss_mb(), 1)
     return result
@@ -145,9 +147,10 @@ def batch(inputs: list[Path], out_dir: Path, prepare: Callable[[str, str], dict]
         except (OSError, TimeoutError, ValueError) as exc:
             raise InputError(None, f"--scheduler {scheduler}: cannot connect ({exc.__class__.__name__})") from None
     results: dict[str, TaskResult] = {}
+    batch_id = uuid.uuid4().hex[:8]        # two batches on one scheduler never share a task key
     try:
         futures = {client.submit(run_task, name, str(Path(path).resolve()), str((out_dir / name).resolve()),
-                                 prepare, key=f"surfelwarp-{name}", pure=False): name
+                                 prepare, key=f"surfelwarp-{name}-{batch_id}", pure=False): name
                    for name, path in zip(names, inputs)}
         start = time.perf_counter()
         bar = tqdm(total=len(futures), unit="sequence", desc="batch", disable=None if progress is None else not progress)
