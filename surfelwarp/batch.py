@@ -106,7 +106,8 @@ def run_task(name: str, input_path: str, out: str, prepare: Callable[[str, str],
     except Exception as exc:                       # a bug: the batch goes on, the row says where
         frame = traceback.extract_tb(exc.__traceback__)[-1]
         first_line = (str(exc).splitlines() or [""])[0]
-        result.message = f"internal error {exc.__class__.__name__}: {first_line} ({Path(frame.filename).name}:{frame.lineno})"
+        where = f"{Path(frame.filename).name}:{frame.lineno}"
+        result.message = f"internal error {exc.__class__.__name__}: {first_line} ({where})"
     result.seconds = time.perf_counter() - start
     result.peak_rss_mb = result.peak_rss_mb or round(peak_rss_mb(), 1)
     return result
@@ -153,7 +154,8 @@ def batch(inputs: list[Path], out_dir: Path, prepare: Callable[[str, str], dict]
                                  prepare, key=f"surfelwarp-{name}-{batch_id}", pure=False): name
                    for name, path in zip(names, inputs)}
         start = time.perf_counter()
-        bar = tqdm(total=len(futures), unit="sequence", desc="batch", disable=None if progress is None else not progress)
+        bar = tqdm(total=len(futures), unit="sequence", desc="batch",
+                   disable=None if progress is None else not progress)
         frames = 0
         for future in as_completed(futures):
             name = futures[future]
