@@ -48,7 +48,9 @@ def vertex_table(position, normal, ref_position, radius=None, confidence=None, i
 
 def mesh_table(vertices, normals, color=None) -> np.ndarray:
     """A mesh's vertex record (CONTRACT.md, model_mesh.ply): float32 x y z nx ny nz [uchar red green blue]."""
-    fields = [(name, "<f4") for name in VERTEX_FIELDS[:6]] + [(name, "u1") for name in COLOR_FIELDS * (color is not None)]
+    fields = [(name, "<f4") for name in VERTEX_FIELDS[:6]]
+    if color is not None:
+        fields += [(name, "u1") for name in COLOR_FIELDS]
     table = np.empty(len(vertices), dtype=fields)
     for i, name in enumerate("xyz"):
         table[name], table["n" + name] = vertices[:, i], normals[:, i]
