@@ -141,10 +141,14 @@ def _method(args: argparse.Namespace, params, intrinsics):
     return ObserveMethod()
 
 
-def check_out_folder(input_path: Path, out: Path) -> Path:
-    """OUT, if it can hold a run's outputs: a folder (or nothing yet), not INPUT nor inside it."""
+def _check_folder(out: Path) -> None:
     if out.exists() and not out.is_dir():
         raise InputError(out, "output path exists and is not a folder")
+
+
+def check_out_folder(input_path: Path, out: Path) -> Path:
+    """OUT, if it can hold a run's outputs: a folder (or nothing yet), not INPUT nor inside it."""
+    _check_folder(out)
     inp, target = input_path.resolve(), out.resolve()
     if target == inp or inp in target.parents:
         raise InputError(out, f"output folder is the input folder {input_path} or lies inside it; "
@@ -261,7 +265,7 @@ def run_flags(args: argparse.Namespace) -> list[str]:
         flag = action.option_strings[0]
         if isinstance(value, Path):     # the workers may run elsewhere: no relative paths
             value = value.resolve()
-        if isinstance(action, argparse._StoreTrueAction):
+        if action.nargs == 0:           # a switch (store_true)
             flags.append(flag)
         else:
             flags += [flag, ",".join(map(str, value)) if isinstance(value, list) else str(value)]
@@ -278,8 +282,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
     from surfelwarp.batch import batch
 
-    if args.out.exists() and not args.out.is_dir():
-        raise InputError(args.out, "output path exists and is not a folder")
+    _check_folder(args.out)
     _params(args), _preprocess_params(args), _intrinsics(args)   # bad flags end the batch before it starts
     results = batch(args.inputs, args.out, partial(batch_setup, run_flags(args)), args.workers, args.scheduler,
                     False if args.no_progress else None)

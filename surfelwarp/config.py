@@ -60,9 +60,10 @@ def _value(value, hint, path, key: str, choices: dict = {}):
         ok = isinstance(value, int) if hint is int else isinstance(value, (int, float))
         if isinstance(value, bool) or not ok:
             raise _bad(path, key, f"expected {'an integer' if hint is int else 'a number'}, got {value!r}")
-        if not math.isfinite(value) or value < 0:
-            raise _bad(path, key, f"expected a finite non-negative value, got {value!r}")
-        return hint(value)
+        try:
+            return hint(value)          # its range: check() (range_problem)
+        except OverflowError:
+            raise _bad(path, key, f"out of range, got {value!r}") from None
     raise _bad(path, key, f"cannot be set from a config file ({hint})")
 
 

@@ -17,7 +17,7 @@ from surfelwarp.report.document import write_report
 from surfelwarp.report.metrics import evaluate_runs, load_metrics
 from surfelwarp.report.plots import (_plt, plot_accuracy, plot_memory, plot_model_size, plot_normals, plot_timing,
                                      plot_topology)
-from surfelwarp.report.renders import input_normals, pick_frames, render_live_normals
+from surfelwarp.report.renders import input_normals, pick_frames, render_live
 from surfelwarp.report.runner import LABELS, METHODS, CompareSpec, open_input, run_in_child
 
 
@@ -57,7 +57,7 @@ def compare(spec: CompareSpec, render_frames: list[int] | None = None) -> Path:
         for name in METHODS:
             ply = out / name / "live" / f"frame-{frame:06d}.ply"
             if ply.exists():
-                panels.append((LABELS[name], render_live_normals(ply, seq.intrinsics)))
+                panels.append((LABELS[name], render_live(ply, seq.intrinsics)))
         if len(panels) > (observed is not None):
             file = f"normals-{frame:06d}.png"
             plot_normals(panels, f"frame {frame}", out / file)

@@ -11,19 +11,13 @@ from surfelwarp.preprocess import PreprocessParams, preprocess
 from surfelwarp.render.views import live_view, normal_colours
 from surfelwarp.report.runner import METHODS
 
-__all__ = ["normal_colours", "render_live", "render_live_normals", "input_normals", "pick_frames",
-           "crop_to_content"]
+__all__ = ["normal_colours", "render_live", "input_normals", "pick_frames", "crop_to_content"]
 
 
 def render_live(ply_path: Path, intrinsics: Intrinsics, colour: bool = False) -> np.ndarray:
-    """render.views.live_view of a live PLY file."""
+    """render.views.live_view of a live PLY file: a mesh through mesh maps, surfels as disks of
+    their radius (a point cloud without radii gets pixel-footprint disks)."""
     return live_view(*read_ply(ply_path), intrinsics, colour)
-
-
-def render_live_normals(ply_path: Path, intrinsics: Intrinsics) -> np.ndarray:
-    """Normal-map colours of a live PLY: a mesh with mesh maps, surfels with solver maps (disks
-    of their radius; a point cloud without radii gets pixel-footprint disks)."""
-    return render_live(ply_path, intrinsics)
 
 
 def input_normals(seq, frame: int, params: PreprocessParams) -> np.ndarray | None:

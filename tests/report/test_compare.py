@@ -18,7 +18,7 @@ from surfelwarp.report.compare import compare
 from surfelwarp.report.contact import contact_gaps, phase_averages, topology_phases
 from surfelwarp.report.document import speed_lines, surfelwarp_variant
 from surfelwarp.report.metrics import speed
-from surfelwarp.report.renders import input_normals, normal_colours, render_live_normals
+from surfelwarp.report.renders import input_normals, normal_colours, render_live
 from surfelwarp.report.runner import METHODS, CompareSpec
 
 pytestmark = pytest.mark.slow     # end-to-end runs
@@ -81,7 +81,7 @@ def test_normal_renders_match_the_observed_normals(compared):
     observed = input_normals(seq, 5, spec.preprocess)
     seen = np.any(observed < 1, axis=-1)
     for name in METHODS:
-        image = render_live_normals(spec.out / name / "live" / "frame-000005.ply", seq.intrinsics)
+        image = render_live(spec.out / name / "live" / "frame-000005.ply", seq.intrinsics)
         drawn = np.any(image < 1, axis=-1)
         both = seen & drawn
         assert both.sum() / (seen | drawn).sum() > 0.85, name
