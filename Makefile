@@ -38,7 +38,7 @@ demo: setup
 test: setup
 	$(PY) -m pytest -q
 
-# Everything but the end-to-end runs (under a minute).
+# Everything but the end-to-end runs, fuzzing and clusters (about a minute and a half).
 test-fast: setup
 	$(PY) -m pytest -q -m "not slow"
 
