@@ -30,6 +30,15 @@ class GrowingBuffer:
             self.buffer.write(data)
         return self.buffer
 
+    def reserve(self, nbytes: int) -> moderngl.Buffer:
+        """The buffer, at least nbytes long (contents undefined after a reallocation)."""
+        if self.buffer is None or self.buffer.size < nbytes:
+            if self.buffer is not None:
+                self.buffer.release()
+            self.buffer = self.ctx.buffer(reserve=max(int(nbytes), 64))
+            self.generation += 1
+        return self.buffer
+
 
 def read_attachment(fbo: moderngl.Framebuffer, attachment: int, components: int, dtype: str,
                     height: int, width: int, origin: tuple[int, int] = (0, 0)) -> np.ndarray:

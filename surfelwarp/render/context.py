@@ -18,8 +18,8 @@ def gl_context() -> moderngl.Context:
             raise GLUnavailableError("libEGL.so.1 is missing: install the system EGL/Mesa libraries "
                                      "(apt-get install libegl1 libgl1-mesa-dri), or run `make demo` once")
         try:
-            _context = moderngl.create_context(standalone=True, backend="egl", require=330)
+            _context = moderngl.create_context(standalone=True, backend="egl", require=430)
         except Exception as exc:  # moderngl raises plain Exception for driver failures
-            raise GLUnavailableError(f"cannot create a headless EGL OpenGL 3.3 context ({exc}); "
+            raise GLUnavailableError(f"cannot create a headless EGL OpenGL 4.3 context (compute shaders) ({exc}); "
                                      "check that Mesa's EGL driver (libegl-mesa0, libgl1-mesa-dri) is installed") from None
     return _context

@@ -1,21 +1,19 @@
-"""The fusion index map (SurfelWarp Sec. VI-A): surfels drawn as unsized points on a supersampled grid.
+"""The fusion index map (SurfelWarp Sec. VI-A): surfels as unsized points on a supersampled grid.
 
 Each surfel lands on at most one pixel (the one whose centre is nearest its projection); where
 several land on the same pixel the closest to the camera wins. Pixels store only the surfel
 index: a surfel's position, normal and confidence are gathers from the arrays that were drawn,
-which travel with the map. At 4x supersampling on llvmpipe, clearing and reading back two
-RGBA32F attribute maps (2560x1920) cost more than drawing the points.
+which travel with the map. Drawn by a compute shader's scatter (scatter.py), not as GL points.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import moderngl
 import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.render.base import FAR_M, NEAR_M, Renderer, camera_points
-from surfelwarp.render.shaders import load_program
+from surfelwarp.render.base import FAR_M, NEAR_M, camera_points
+from surfelwarp.render.scatter import Scatter
 
 
 @dataclass(frozen=True)
@@ -49,24 +47,6 @@ class FusionMaps:
         return None if self.confidences is None else self._per_pixel(self.confidences)
 
 
-class _IndexRenderer(Renderer):
-    attributes = [("position", "3f", "in_position")]
-    buffers = ("position",)
-
-    def __init__(self, ctx: moderngl.Context):
-        super().__init__(ctx, load_program(ctx, vertex="index_map.vert.glsl", fragment="index_map.frag.glsl"))
-
-    def render(self, positions: np.ndarray, intr: Intrinsics, near: float, far: float) -> np.ndarray:
-        width, height = intr.width, intr.height
-        self.data["position"].upload(positions)
-        fbo = self.begin((width, height), 0, intr, near, far)
-        self.ctx.point_size = 1.0
-        self.program["u_size"].value = (float(width), float(height))
-        if len(positions):
-            self.vertex_array().render(moderngl.POINTS, vertices=len(positions))
-        return self.read_index(fbo, height, width)
-
-
 def render_index_map(positions: np.ndarray, normals: np.ndarray, intrinsics: Intrinsics,
                      supersample: int = 1, confidence: np.ndarray | None = None,
                      near_m: float = NEAR_M, far_m: float = FAR_M) -> FusionMaps:
@@ -82,6 +62,8 @@ def render_index_map(positions: np.ndarray, normals: np.ndarray, intrinsics: Int
             else np.asarray(confidence, np.float32).reshape(-1))
     if len(conf) != len(positions):
         raise ValueError("confidence and positions differ in length")
-    index = _IndexRenderer.current().render(positions, intr, near_m, far_m)
+    index = Scatter.of("index_map.comp.glsl", {"positions": 0}).run(
+        len(positions), intr.height, intr.width, {"positions": positions}, u_K=(intr.fx, intr.fy, intr.cx, intr.cy),
+        u_size=(intr.width, intr.height), u_near_far=(near_m, far_m), u_count=len(positions))
     return FusionMaps(index=index, supersample=int(supersample), intrinsics=intr, points=positions,
                       normals=normals, confidences=None if confidence is None else conf)

@@ -12,7 +12,7 @@ def shader_source(name: str) -> str:
     return resources.files("surfelwarp.shaders").joinpath(name).read_text()
 
 
-_programs: dict[tuple, moderngl.Program] = {}
+_programs: dict[tuple, moderngl.Program | moderngl.ComputeShader] = {}
 
 
 def load_program(ctx: moderngl.Context, vertex: str, fragment: str | None = None,
@@ -25,4 +25,12 @@ def load_program(ctx: moderngl.Context, vertex: str, fragment: str | None = None
             fragment_shader=shader_source(fragment) if fragment else None,
             geometry_shader=shader_source(geometry) if geometry else None,
             varyings=varyings)
+    return _programs[key]
+
+
+def load_compute(ctx: moderngl.Context, name: str) -> moderngl.ComputeShader:
+    """Compile (once per context) the compute shader of the named file."""
+    key = (id(ctx), name)
+    if key not in _programs:
+        _programs[key] = ctx.compute_shader(shader_source(name))
     return _programs[key]

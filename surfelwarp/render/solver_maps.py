@@ -2,21 +2,20 @@
 
 Each pixel holds the index, camera-frame position and normal of the surfel whose disk the pixel's
 ray meets first; the depth test uses the ray/disk intersection depth, so overlapping splats
-resolve per pixel. Only the index is drawn: position and normal are the surfel's own, gathered
-from the arrays that were drawn (on llvmpipe two RGBA32F attachments cost ~15 % of the draw).
+resolve per pixel. Only the index is drawn (a compute shader's scatter, scatter.py): position
+and normal are the surfel's own, gathered from the arrays that were drawn.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import moderngl
 import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.render.base import FAR_M, NEAR_M, Renderer, camera_points
-from surfelwarp.render.shaders import load_program
+from surfelwarp.render.base import FAR_M, NEAR_M, camera_points
+from surfelwarp.render.scatter import Scatter
 
-MARGIN_PX = 32        # disks whose sprite centre falls this far off the image still draw
+MAX_SIZE_PX = 255.0   # a disk is tried on at most this square of pixels about its centre
 MIN_COS = 0.05        # grazing-ray clamp of |cos(ray, normal)| (about 87 degrees)
 
 
@@ -27,39 +26,6 @@ class SolverMaps:
     vertex: np.ndarray       # float32, surfel centre, camera frame
     normal: np.ndarray       # float32, surfel normal
     intrinsics: Intrinsics
-
-
-class _SplatRenderer(Renderer):
-    attachments = [(1, "i4")]
-    attributes = [("position", "3f", "in_position"), ("normal", "3f", "in_normal"), ("radius", "1f", "in_radius")]
-    buffers = ("position", "normal", "radius", "element")
-
-    def __init__(self, ctx: moderngl.Context):
-        super().__init__(ctx, load_program(ctx, vertex="surfel_splat.vert.glsl", fragment="surfel_splat.frag.glsl"))
-        self.max_point_size = float(ctx.info["GL_POINT_SIZE_RANGE"][1])
-
-    def render(self, positions, normals, radii, elements, fill_elements, intr: Intrinsics, near: float, far: float):
-        width, height = intr.width, intr.height
-        fb_size = (width + 2 * MARGIN_PX, height + 2 * MARGIN_PX)
-        self.data["position"].upload(positions)
-        self.data["normal"].upload(normals)
-        self.data["radius"].upload(radii)
-        self.data["element"].upload(np.concatenate([elements, fill_elements]))
-        fbo = self.begin(fb_size, moderngl.PROGRAM_POINT_SIZE, intr, near, far)
-        prog = self.program
-        prog["u_fb_size"].value = (float(fb_size[0]), float(fb_size[1]))
-        prog["u_margin"].value = float(MARGIN_PX)
-        prog["u_max_size"].value = self.max_point_size
-        prog["u_min_cos"].value = MIN_COS
-        # The fill surfels draw behind every depth of the first set: they show only where it left
-        # the pixel empty.
-        first_scale = 0.5 if len(fill_elements) else 1.0
-        for first, count, layer in ((0, len(elements), (0.0, first_scale)),
-                                    (len(elements), len(fill_elements), (0.5, 0.5))):
-            if count:
-                prog["u_depth_layer"].value = layer
-                self.vertex_array().render(moderngl.POINTS, vertices=count, first=first)
-        return self.read_index(fbo, height, width, (MARGIN_PX, MARGIN_PX))
 
 
 def _elements(indices: np.ndarray, n: int) -> np.ndarray:
@@ -80,7 +46,7 @@ def render_solver_maps(positions: np.ndarray, normals: np.ndarray, radii: np.nda
     `indices` selects the surfels drawn (e.g. the stable ones); maps still hold full-array indices.
     `fill_indices` are drawn only on the pixels the first set leaves empty.
     Disks reaching outside (near_m, far_m) in depth are dropped; a disk whose projection is wider
-    than the driver's largest point size (255 px on llvmpipe) is cut to that square.
+    than MAX_SIZE_PX is cut to that square about its centre.
     """
     positions, normals = camera_points(intrinsics, positions, normals)
     radii = np.asarray(radii, np.float32).reshape(-1)
@@ -89,20 +55,24 @@ def render_solver_maps(positions: np.ndarray, normals: np.ndarray, radii: np.nda
         raise ValueError("positions and radii differ in length")
     elements = np.arange(n, dtype=np.uint32) if indices is None else _elements(indices, n)
     fill = np.zeros(0, np.uint32) if fill_indices is None else _elements(fill_indices, n)
-    index = _SplatRenderer.current().render(positions, normals, radii, elements, fill, intrinsics, near_m, far_m)
-    hit = index >= 0
-    drawn = index[hit]
-    vertex = np.zeros(index.shape + (3,), np.float32)
-    normal = np.zeros(index.shape + (3,), np.float32)
-    vertex[hit], normal[hit] = positions[drawn], normals[drawn]
+    intr = intrinsics
+    index = Scatter.of("surfel_splat.comp.glsl", {"positions": 0, "elements": 3, "normals": 4, "radii": 5}).run(
+        len(elements) + len(fill), intr.height, intr.width,
+        {"positions": positions, "normals": normals, "radii": radii, "elements": np.concatenate([elements, fill])},
+        u_K=(intr.fx, intr.fy, intr.cx, intr.cy), u_size=(intr.width, intr.height), u_near_far=(near_m, far_m),
+        u_max_size=MAX_SIZE_PX, u_min_cos=MIN_COS, u_count=len(elements) + len(fill), u_first_count=len(elements))
+    # One gather each, empty pixels (-1) taking the zero row put in front.
+    vertex = np.take(np.concatenate([np.zeros((1, 3), np.float32), positions]), index + 1, axis=0)
+    normal = np.take(np.concatenate([np.zeros((1, 3), np.float32), normals]), index + 1, axis=0)
     return SolverMaps(index=index, vertex=vertex, normal=normal, intrinsics=intrinsics)
 
 
 def maps_to_world(maps: SolverMaps, T_camera_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Solver maps in world coordinates, zero where no surfel was drawn (as rigid ICP expects)."""
-    hit = maps.index >= 0
+    hit = (maps.index >= 0)[..., None]
     R = T_camera_to_world[:3, :3].astype(np.float32)
-    vertex, normal = np.zeros_like(maps.vertex), np.zeros_like(maps.normal)
-    vertex[hit] = maps.vertex[hit] @ R.T + T_camera_to_world[:3, 3].astype(np.float32)
-    normal[hit] = maps.normal[hit] @ R.T
-    return vertex, normal
+    # Whole maps (no masked gathers): the empty pixels' zeros turn into zeros, and the shift is
+    # added where a surfel was drawn only.
+    vertex = maps.vertex @ R.T
+    vertex += hit * T_camera_to_world[:3, 3].astype(np.float32)
+    return vertex, maps.normal @ R.T
