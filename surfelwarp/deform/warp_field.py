@@ -23,11 +23,11 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
-from surfelwarp.geometry.dual_quaternion import (_components, apply_components, dq_apply, dq_blend_indexed,
-                                               dq_from_transform, dq_to_transform)
+from surfelwarp.geometry.dq_kernels import blend_apply
+from surfelwarp.geometry.dual_quaternion import dq_blend_indexed, dq_from_transform, dq_to_transform
 from surfelwarp.geometry.se3 import se3_exp
 
-_CHUNK = 1 << 16   # points per warp batch: bounds the float64 temporaries
+_CHUNK = 1 << 16   # points per warp batch: bounds the float64 copies of float32 inputs
 
 
 @dataclass(frozen=True)
@@ -273,15 +273,13 @@ def warp(points: np.ndarray, normals: np.ndarray | None, knn: np.ndarray, weight
         normals = np.asarray(normals)
         out_n = np.empty(normals.shape, _out_dtype(normals))
     dqs = field.dual_quaternions()
-    knn = np.asarray(knn)
-    # Chunks bound the float64 temporaries (a few dozen per point).
     for s in range(0, len(points), _CHUNK):
         part = slice(s, s + _CHUNK)
-        b, _ = dq_blend_indexed(dqs, knn[part], weights[part])
-        p, n = dq_apply(b, points[part], None if normals is None else normals[part])
-        out_p[part] = p
+        _, _, p, n = blend_apply(dqs, knn[part], weights[part], points[part].T,
+                                 None if normals is None else normals[part].T)
+        out_p[part] = p.T
         if normals is not None:
-            out_n[part] = n
+            out_n[part] = n.T
     return out_p, out_n
 
 
@@ -294,20 +292,14 @@ def inverse_warp(live_points: np.ndarray, live_normals: np.ndarray | None, knn: 
     if live_normals is not None:
         live_normals = np.asarray(live_normals)
         ref_n = np.empty(live_normals.shape, _out_dtype(live_normals))
-    dqs, knn = field.dual_quaternions(), np.asarray(knn)
+    dqs = field.dual_quaternions()
     for s in range(0, len(live_points), _CHUNK):
         part = slice(s, s + _CHUNK)
-        # W^-1 x = R^T (x - t): t is where W takes the origin; R^T turns by the conjugate.
-        w, x, y, z, *dual = _components(dq_blend_indexed(dqs, knn[part], weights[part])[0])
-        zero = np.zeros_like(w)
-        t, _ = apply_components((w, x, y, z, *dual), (zero, zero, zero))
-        conjugate = (w, -x, -y, -z, zero, zero, zero, zero)
-        p = _components(live_points[part])
-        n = None if live_normals is None else _components(live_normals[part])
-        p, n = apply_components(conjugate, [p[i] - t[i] for i in range(3)], n)
-        ref_p[part] = np.stack(p, axis=-1)
-        if n is not None:
-            ref_n[part] = np.stack(n, axis=-1)
+        _, _, p, n = blend_apply(dqs, knn[part], weights[part], live_points[part].T,
+                                 None if live_normals is None else live_normals[part].T, inverse=True)
+        ref_p[part] = p.T
+        if live_normals is not None:
+            ref_n[part] = n.T
     return ref_p, ref_n
 
 

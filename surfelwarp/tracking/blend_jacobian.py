@@ -10,6 +10,7 @@ J[c, s] = signed[c, s] D[knn[c, s]] rows[c]: the node's 6x8 twist derivative D t
 """
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from surfelwarp.deform.warp_field import WarpField, warp
@@ -56,6 +57,34 @@ def residual_rows(b, x, n) -> np.ndarray:
         out[5 + i] = 2 * (w * ni + nv[i]) * inv
     out[4] = -2 * vn_dot * inv
     return np.ascontiguousarray(out.T)
+
+
+@numba.njit(cache=True, nogil=True)
+def residual_row(b, px, py, pz, nx, ny, nz, out):
+    """residual_rows of one pair (b (8,), x and n as scalars) into out (8,), compiled: the
+    same expressions, for the assembly kernel."""
+    w, vx, vy, vz, we, ex, ey, ez = b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]
+    inv = 1.0 / (w * w + vx * vx + vy * vy + vz * vz)
+    nx_dot = nx * px + ny * py + nz * pz
+    vx_dot = vx * px + vy * py + vz * pz
+    vn_dot = vx * nx + vy * ny + vz * nz
+    ne_dot = nx * ex + ny * ey + nz * ez
+    xn0, xn1, xn2 = py * nz - pz * ny, pz * nx - px * nz, px * ny - py * nx
+    en0, en1, en2 = ey * nz - ez * ny, ez * nx - ex * nz, ex * ny - ey * nx
+    nv0, nv1, nv2 = ny * vz - nz * vy, nz * vx - nx * vz, nx * vy - ny * vx
+    vxx_n = vx * xn0 + vy * xn1 + vz * xn2
+    ven = vx * en0 + vy * en1 + vz * en2
+    F = ((w * w - vx * vx - vy * vy - vz * vz) * nx_dot + 2 * vx_dot * vn_dot + 2 * w * vxx_n
+         + 2 * w * ne_dot - 2 * we * vn_dot + 2 * ven)
+    s = F * inv
+    out[0] = (2 * w * nx_dot + 2 * vxx_n + 2 * ne_dot - 2 * w * s) * inv
+    out[1] = (2 * (vn_dot * px + vx_dot * nx + w * xn0 - we * nx + en0 - (nx_dot + s) * vx)) * inv
+    out[2] = (2 * (vn_dot * py + vx_dot * ny + w * xn1 - we * ny + en1 - (nx_dot + s) * vy)) * inv
+    out[3] = (2 * (vn_dot * pz + vx_dot * nz + w * xn2 - we * nz + en2 - (nx_dot + s) * vz)) * inv
+    out[4] = -2 * vn_dot * inv
+    out[5] = 2 * (w * nx + nv0) * inv
+    out[6] = 2 * (w * ny + nv1) * inv
+    out[7] = 2 * (w * nz + nv2) * inv
 
 
 def twist_dual_quaternions(field: WarpField, q: np.ndarray | None = None) -> np.ndarray:

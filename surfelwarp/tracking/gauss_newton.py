@@ -21,10 +21,11 @@ import scipy.sparse as sp
 
 from surfelwarp.deform.warp_field import WarpField, apply_update
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.geometry.dual_quaternion import _components, apply_components, dq_blend_indexed
+from surfelwarp.geometry.dq_kernels import blend_apply
+from surfelwarp.geometry.dual_quaternion import _components
 from surfelwarp.tracking.alignment import Alignment, measure
 from surfelwarp.tracking.anchors import AnchorTerm
-from surfelwarp.tracking.assembly import CHUNK, BlockPattern, NormalEquations, dense_point_blocks
+from surfelwarp.tracking.assembly import BlockPattern, NormalEquations, dense_point_blocks
 from surfelwarp.tracking.association import DepthTargets, associate_components
 from surfelwarp.tracking.blend_jacobian import twist_dual_quaternions
 from surfelwarp.tracking.features import AnchoredMatches
@@ -156,14 +157,7 @@ def warp_state(field, ref_points, ref_normals, knn, weights):
     (3, N)): node dual quaternions, blends (N, 8), signed weights (N, k), live points and
     normals (3, N)."""
     dq = field.dual_quaternions()
-    n = len(knn)
-    b, signed, live, live_n = np.empty((n, 8)), np.empty(knn.shape), np.empty((3, n)), np.empty((3, n))
-    for start in range(0, n, CHUNK):
-        part = slice(start, start + CHUNK)
-        b[part], signed[part] = dq_blend_indexed(dq, knn[part], weights[part])
-        p, pn = apply_components(_components(b[part]), ref_points[:, part], ref_normals[:, part])
-        for i in range(3):
-            live[i, part], live_n[i, part] = p[i], pn[i]
+    b, signed, live, live_n = blend_apply(dq, knn, weights, ref_points, ref_normals)
     return dq, b, signed, live, live_n
 
 

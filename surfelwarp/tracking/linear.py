@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -55,23 +56,134 @@ def solve_system(system: NormalEquations, damping: float, linear_solver: str = "
                  pcg_max_iterations: int = 500) -> Step:
     """The damped Gauss-Newton step of the system's free nodes, and of its border if it has one."""
     pattern, free, border = system.pattern, system.free, system.border
+    if linear_solver == "pcg":
+        step = _pcg_on_blocks(system, damping, pcg_rtol, pcg_max_iterations)
+        if step is not None:
+            return step
     H, g, diag = pattern.matrix(system.upper), system.gradient.reshape(-1), system.upper[pattern.diag]
     if not free.all():
         H, g, diag = restrict(H, g, diag, free)
     if border is not None:
-        H, g, diag = Bordered(H, border.B[free], border.C), np.concatenate([g, border.g]), \
-            np.concatenate([diag, border.C[None]])
-    ok = False
-    if linear_solver == "pcg":
-        xi, _, ok = solve_step_pcg(H, g, damping, pcg_rtol, pcg_max_iterations, diag)
-    if not ok:
-        xi = solve_step(H.tosparse() if border is not None else H, g, damping)
+        H, g = Bordered(H, border.B[free], border.C), np.concatenate([g, border.g])
+    xi = solve_step(H.tosparse() if border is not None else H, g, damping)
     zeta = np.zeros(6)
     if border is not None:
         xi, zeta = xi[:-6], xi[-6:]
     if not free.all():
         xi = _expand(xi, free)
-    return Step(xi.reshape(-1, 6), zeta, linear_solver == "pcg" and not ok)
+    return Step(xi.reshape(-1, 6), zeta, linear_solver == "pcg")
+
+
+def _pcg_on_blocks(system: NormalEquations, damping: float, rtol: float, max_iterations: int) -> Step | None:
+    """solve_step_pcg on the system's upper blocks as they are (no matrix built, held nodes
+    masked instead of removed, the border as node M): compiled, each iteration
+    reads the blocks once for both triangles. None if it does not converge."""
+    pattern, free, border = system.pattern, system.free, system.border
+    diag = system.upper[pattern.diag]
+    m = pattern.num_nodes
+    g = np.zeros((m + 1, 6))
+    g[:m][free] = system.gradient[free]
+    diag_sum = np.trace(diag[free], axis1=1, axis2=2).sum()
+    count = 6 * int(free.sum())
+    if border is not None:
+        B, C = np.ascontiguousarray(border.B * free[:, None, None]), border.C
+        g[m] = border.g
+        diag_sum, count = diag_sum + np.trace(C), count + 6
+    else:
+        B, C = np.zeros((1, 6, 6)), np.eye(6)
+    mu = damping * max(diag_sum / max(count, 1), 1e-12)
+    blocks = np.concatenate([diag, C[None]]) + mu * np.eye(6)
+    try:
+        Minv = np.linalg.inv(blocks)
+    except np.linalg.LinAlgError:
+        return None
+    Minv[:m][~free] = 0.0
+    if border is None:
+        Minv[m] = 0.0
+    x = np.zeros((m + 1, 6))
+    converged = _pcg(np.ascontiguousarray(system.upper), pattern.lo, pattern.hi, free, Minv, B, C, border is not None,
+                     mu, g, rtol, max_iterations, x)
+    if not converged:
+        return None
+    return Step(x[:m], x[m] if border is not None else np.zeros(6), False)
+
+
+@numba.njit(cache=True, nogil=True)
+def _matvec(upper, lo, hi, free, B, C, bordered, mu, p, out):
+    """out = (H + mu I) p on the free nodes (and the border, as row m)."""
+    m = len(free)
+    out[:] = 0.0
+    for n in range(len(lo)):
+        a, b = lo[n], hi[n]
+        if not (free[a] and free[b]):
+            continue
+        for i in range(6):
+            acc = 0.0
+            for j in range(6):
+                acc += upper[n, i, j] * p[b, j]
+            out[a, i] += acc
+        if a != b:
+            for j in range(6):
+                acc = 0.0
+                for i in range(6):
+                    acc += upper[n, i, j] * p[a, i]
+                out[b, j] += acc
+    if bordered:
+        for a in range(m):
+            for i in range(6):
+                acc = 0.0
+                for j in range(6):
+                    acc += B[a, i, j] * p[m, j]
+                    out[m, j] += B[a, i, j] * p[a, i]
+                out[a, i] += acc
+        for i in range(6):
+            for j in range(6):
+                out[m, i] += C[i, j] * p[m, j]
+    for a in range(m + 1):
+        if a < m and not free[a] or a == m and not bordered:
+            continue
+        for i in range(6):
+            out[a, i] += mu * p[a, i]
+
+
+@numba.njit(cache=True, nogil=True)
+def _precondition(Minv, r, z):
+    for a in range(len(r)):
+        for i in range(6):
+            acc = 0.0
+            for j in range(6):
+                acc += Minv[a, i, j] * r[a, j]
+            z[a, i] = acc
+
+
+@numba.njit(cache=True, nogil=True)
+def _pcg(upper, lo, hi, free, Minv, B, C, bordered, mu, g, rtol, max_iterations, x):
+    """Block-Jacobi preconditioned CG on (H + mu I) x = -g from x = 0 (as solve_step_pcg)."""
+    r = -g
+    z = np.empty_like(g)
+    Hp = np.empty_like(g)
+    target = rtol * np.sqrt(np.sum(g * g))
+    _precondition(Minv, r, z)
+    p = z.copy()
+    rz = np.sum(r * z)
+    for it in range(max_iterations + 1):
+        if np.sqrt(np.sum(r * r)) <= target:
+            return True
+        if it == max_iterations:
+            return False
+        _matvec(upper, lo, hi, free, B, C, bordered, mu, p, Hp)
+        pHp = np.sum(p * Hp)
+        if not pHp > 0:
+            return False
+        alpha = rz / pHp
+        x += alpha * p
+        r -= alpha * Hp
+        _precondition(Minv, r, z)
+        rz_old = rz
+        rz = np.sum(r * z)
+        p *= rz / rz_old
+        p += z
+    return False
 
 
 def restrict(H: sp.bsr_matrix, g: np.ndarray, diag_blocks: np.ndarray, keep: np.ndarray):

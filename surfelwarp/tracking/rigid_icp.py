@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
@@ -124,25 +125,60 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _associate(level: _Level, T: np.ndarray, T_world_to_model: np.ndarray, min_normal_cos: float):
     """World observation points (3, M), model normals (3, M), residuals (M,) and weights (M,)
     or None of the gated projective pairs."""
-    R, t = T[:3, :3].astype(np.float32), T[:3, 3:].astype(np.float32)
-    p = R @ level.obs_vertex + t
-    q = T_world_to_model[:3, :3].astype(np.float32) @ p + T_world_to_model[:3, 3:].astype(np.float32)
     intr = level.intrinsics
-    front = q[2] > 1e-6
-    inv_z = 1.0 / np.where(front, q[2], 1.0)
-    u = np.rint(intr.fx * q[0] * inv_z + intr.cx).astype(np.int64)
-    v = np.rint(intr.fy * q[1] * inv_z + intr.cy).astype(np.int64)
-    inside = front & (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
-    pixel = np.where(inside, v * intr.width + u, 0)
-    vm = np.take(level.model_vertex, pixel, axis=1)
-    nm = np.take(level.model_normal, pixel, axis=1)
-    d = p - vm
-    n_obs = R @ level.obs_normal
-    keep = (inside & np.take(level.model_valid, pixel) & (_dot(d, d) < level.gate_m ** 2)
-            & (_dot(n_obs, nm) > min_normal_cos))
-    w = None if level.model_weight is None else np.take(level.model_weight, pixel)[keep]
-    p, nm, d = (np.compress(keep, a, axis=1) for a in (p, nm, d))
-    return p, nm, _dot(nm, d), w
+    f32 = np.float32
+    out_p, out_n, r, w = (np.empty((3, level.obs_vertex.shape[1]), f32), np.empty((3, level.obs_vertex.shape[1]), f32),
+                          np.empty(level.obs_vertex.shape[1], f32), np.empty(level.obs_vertex.shape[1], f32))
+    weights = level.model_weight if level.model_weight is not None else np.ones(1, f32)
+    k = _pairs(level.obs_vertex, level.obs_normal, level.model_vertex, level.model_normal, level.model_valid,
+               weights, level.model_weight is not None, np.ascontiguousarray(T[:3], f32),
+               np.ascontiguousarray(T_world_to_model[:3], f32),
+               np.array([intr.fx, intr.fy, intr.cx, intr.cy, level.gate_m ** 2, min_normal_cos], f32),
+               intr.width, intr.height, out_p, out_n, r, w)
+    return out_p[:, :k], out_n[:, :k], r[:k], (w[:k] if level.model_weight is not None else None)
+
+
+@numba.njit(cache=True, nogil=True)
+def _pairs(obs_v, obs_n, model_v, model_n, model_valid, model_w, weighted, T, T_wm, c, width, height,
+           out_p, out_n, out_r, out_w):
+    """The projective pairs of _associate in one pass (float32 as the maps): their count."""
+    fx, fy, cx, cy, gate2, min_cos = c[0], c[1], c[2], c[3], c[4], c[5]
+    k = 0
+    for i in range(obs_v.shape[1]):
+        x, y, z = obs_v[0, i], obs_v[1, i], obs_v[2, i]
+        p0 = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
+        p1 = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+        p2 = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+        q2 = T_wm[2, 0] * p0 + T_wm[2, 1] * p1 + T_wm[2, 2] * p2 + T_wm[2, 3]
+        if not q2 > 1e-6:
+            continue
+        q0 = T_wm[0, 0] * p0 + T_wm[0, 1] * p1 + T_wm[0, 2] * p2 + T_wm[0, 3]
+        q1 = T_wm[1, 0] * p0 + T_wm[1, 1] * p1 + T_wm[1, 2] * p2 + T_wm[1, 3]
+        inv_z = np.float32(1.0) / q2
+        u = np.rint(fx * q0 * inv_z + cx)
+        v = np.rint(fy * q1 * inv_z + cy)
+        if not (u >= 0 and u < width and v >= 0 and v < height):
+            continue
+        pix = int(v) * width + int(u)
+        if not model_valid[pix]:
+            continue
+        d0, d1, d2 = p0 - model_v[0, pix], p1 - model_v[1, pix], p2 - model_v[2, pix]
+        if not d0 * d0 + d1 * d1 + d2 * d2 < gate2:
+            continue
+        nx, ny, nz = obs_n[0, i], obs_n[1, i], obs_n[2, i]
+        m0, m1, m2 = model_n[0, pix], model_n[1, pix], model_n[2, pix]
+        n0 = T[0, 0] * nx + T[0, 1] * ny + T[0, 2] * nz
+        n1 = T[1, 0] * nx + T[1, 1] * ny + T[1, 2] * nz
+        n2 = T[2, 0] * nx + T[2, 1] * ny + T[2, 2] * nz
+        if not n0 * m0 + n1 * m1 + n2 * m2 > min_cos:
+            continue
+        out_p[0, k], out_p[1, k], out_p[2, k] = p0, p1, p2
+        out_n[0, k], out_n[1, k], out_n[2, k] = m0, m1, m2
+        out_r[k] = m0 * d0 + m1 * d1 + m2 * d2
+        if weighted:
+            out_w[k] = model_w[pix]
+        k += 1
+    return k
 
 
 def rigid_icp(model_vertex_map: np.ndarray, model_normal_map: np.ndarray, T_model_camera_to_world: np.ndarray,

@@ -358,14 +358,40 @@ def test_indexed_blend_equals_dq_blend_with_sign_flips(problem):
     assert np.mean(signed < 0) > 0.05                   # the flips were exercised
 
 
-@pytest.mark.parametrize("lookup", ["table", "sparse"])
-def test_factored_normal_equations_equal_the_generic_ones(problem, lookup, monkeypatch):
+def test_block_pattern_is_the_sparsity_of_the_normal_equations(problem):
+    """The compiled pattern equals the upper triangle of K^T K + E + E^T + I (surfel-shared node
+    pairs, graph edges, diagonal), and each surfel's slots name the blocks of its node pairs."""
+    import scipy.sparse as sp
+    from surfelwarp.tracking.assembly import BlockPattern
+    rng = np.random.default_rng(3)
+    field = problem.field
+    m = field.num_nodes
+    sel = rng.choice(len(problem.knn), 500, replace=False)
+    knn = problem.knn[sel].astype(np.int64)
+    knn[:7, 1] = knn[:7, 0]                               # repeated nodes in a surfel
+    pattern = BlockPattern(m, field.graph, knn)
+    n, k = knn.shape
+    K = sp.csr_matrix((np.ones(n * k), knn.reshape(-1), np.arange(n + 1) * k), shape=(n, m))
+    j = np.repeat(np.arange(m), field.graph.shape[1])
+    E = sp.csr_matrix((np.ones(j.size), (j, field.graph.reshape(-1))), shape=(m, m))
+    S = sp.triu(K.T @ K + E + E.T + sp.identity(m)).tocsr()
+    S.sort_indices()
+    rows = np.repeat(np.arange(m), np.diff(S.indptr))
+    assert np.array_equal(pattern.lo, rows) and np.array_equal(pattern.hi, S.indices)
+    a, b = knn[:, pattern.pair_s], knn[:, pattern.pair_t]
+    assert np.array_equal(pattern.lo[pattern.slots], np.minimum(a, b))
+    assert np.array_equal(pattern.hi[pattern.slots], np.maximum(a, b))
+    assert np.array_equal(pattern.keys(pattern.hi[:5], pattern.lo[:5] + m), -np.ones(5))   # absent pairs
+
+
+@pytest.mark.parametrize("assembly", ["point_blocks", "point_blocks_reference"])
+def test_factored_normal_equations_equal_the_generic_ones(problem, assembly):
     from surfelwarp.geometry.dual_quaternion import _components, dq_blend_indexed
-    from surfelwarp.tracking.assembly import BlockPattern, point_blocks
+    from surfelwarp.tracking import assembly as assembly_module
+    from surfelwarp.tracking.assembly import BlockPattern
+    point_blocks = getattr(assembly_module, assembly)     # compiled, and its numpy reference
     from surfelwarp.tracking.blend_jacobian import twist_dual_quaternions
     from surfelwarp.tracking.terms.regulariser import regulariser_blocks
-    if lookup == "sparse":                              # the node-pair lookup of large graphs
-        monkeypatch.setattr(BlockPattern, "_LUT_MAX", 0)
     rng = np.random.default_rng(6)
     field = turned_field(problem)
     knn, w = problem.knn.astype(np.int64), problem.weights.astype(np.float64)
@@ -483,3 +509,34 @@ def test_nodes_far_from_the_view_stay_fixed(problem):
     loose, _ = solve(None)
     moved = np.linalg.norm(loose.transforms[far, :3, 3] - problem.field.transforms[far, :3, 3], axis=1)
     assert moved.max() > 1e-3
+
+
+@pytest.mark.parametrize("held, bordered", [(False, False), (True, False), (True, True)])
+def test_compiled_pcg_equals_the_direct_solve(problem, held, bordered):
+    """The compiled PCG on the upper blocks (held nodes masked, the border as one more node)
+    gives the sparse LU step of the restricted, bordered system; when it cannot converge, the
+    step is LU's and says so."""
+    from surfelwarp.tracking.assembly import Border, NormalEquations, BlockPattern
+    from surfelwarp.tracking.linear import solve_system
+    from surfelwarp.tracking.terms.regulariser import regulariser_blocks
+    rng = np.random.default_rng(11)
+    field = random_field(problem, 0.1)
+    m = field.num_nodes
+    pattern = BlockPattern(m, field.graph, problem.knn[:4000])
+    upper, g = regulariser_blocks(field, pattern)
+    J = rng.normal(size=(m, 6, 6)) * 0.3
+    upper[pattern.diag] += J @ J.transpose(0, 2, 1) + 0.1 * np.eye(6)
+    free = rng.random(m) > 0.2 if held else np.ones(m, bool)
+    border = None
+    if bordered:
+        B = rng.normal(size=(m, 6, 6)) * 0.01
+        border = Border(B, 50.0 * np.eye(6) + np.abs(B).sum() * 0.01 * np.eye(6), rng.normal(size=6))
+    system = NormalEquations(pattern, free, np.zeros((m, 6, 8)), upper, g + rng.normal(size=(m, 6)), border)
+    direct = solve_system(system, 1e-4, "direct")
+    pcg = solve_system(system, 1e-4, "pcg", pcg_rtol=1e-10, pcg_max_iterations=5000)
+    scale = np.abs(direct.xi).max()
+    assert not pcg.lu_fallback and np.abs(pcg.xi - direct.xi).max() < 1e-6 * scale
+    assert np.abs(pcg.zeta - direct.zeta).max() < 1e-6 * max(scale, 1e-12)
+    assert not np.any(pcg.xi[~free])
+    short = solve_system(system, 1e-4, "pcg", pcg_rtol=1e-10, pcg_max_iterations=2)
+    assert short.lu_fallback and np.abs(short.xi - direct.xi).max() < 1e-9 * scale

@@ -161,3 +161,41 @@ def test_7scenes_frame_to_frame_chain_drift(office):
     print(f"7scenes chain 0..30 step 3: motion {np.linalg.norm(truth[:3, 3]) * 100:.2f} cm, "
           f"drift {dt * 100:.2f} cm {dr:.3f} deg")
     assert dt < 0.03 and dr < 1.2
+
+
+def _associate_numpy(level, T, T_world_to_model, min_normal_cos):
+    """The projective pairing of rigid_icp._associate in whole-array numpy: its reference."""
+    R, t = T[:3, :3].astype(np.float32), T[:3, 3:].astype(np.float32)
+    p = R @ level.obs_vertex + t
+    q = T_world_to_model[:3, :3].astype(np.float32) @ p + T_world_to_model[:3, 3:].astype(np.float32)
+    intr = level.intrinsics
+    front = q[2] > 1e-6
+    inv_z = 1.0 / np.where(front, q[2], 1.0)
+    u = np.rint(intr.fx * q[0] * inv_z + intr.cx).astype(np.int64)
+    v = np.rint(intr.fy * q[1] * inv_z + intr.cy).astype(np.int64)
+    inside = front & (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
+    pixel = np.where(inside, v * intr.width + u, 0)
+    vm, nm = level.model_vertex[:, pixel], level.model_normal[:, pixel]
+    d = p - vm
+    keep = (inside & level.model_valid[pixel] & (np.sum(d * d, 0) < level.gate_m ** 2)
+            & (np.sum((R @ level.obs_normal) * nm, 0) > min_normal_cos))
+    w = None if level.model_weight is None else level.model_weight[pixel][keep]
+    return p[:, keep], nm[:, keep], np.sum(nm * d, 0)[keep], w
+
+
+def test_compiled_pairing_equals_the_numpy_reference(synthetic):
+    from surfelwarp.tracking.rigid_icp import _associate, _levels
+    first, second = synthetic
+    mv, mn = world_maps(first, np.eye(4))
+    weight = np.random.default_rng(2).random(first.valid.shape).astype(np.float32)
+    params = RigidParams()
+    T = se3_exp(np.array([0.01, -0.02, 0.005, 0.01, 0.0, -0.01])) @ MOTION
+    for model_weight in (None, weight):
+        for level in _levels(mv, mn, model_weight, second, INTR, params):
+            got = _associate(level, T, np.eye(4), params.min_normal_cos)
+            ref = _associate_numpy(level, T, np.eye(4), params.min_normal_cos)
+            assert len(got[2]) > 100 and len(got[2]) == len(ref[2])
+            for a, b in zip(got, ref):
+                assert (a is None) == (b is None)
+                if a is not None:
+                    assert np.allclose(a, b, rtol=0, atol=2e-6)
