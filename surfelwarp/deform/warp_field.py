@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field as dc_field
 
+import numba
 import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
@@ -201,6 +202,46 @@ def skin(points: np.ndarray, nodes: np.ndarray, k: int, sigma_m: float) -> tuple
     return _finish(d * d, idx, k, sigma_m)
 
 
+def _nearest_new(tree: KDTree, pts: np.ndarray, count: int) -> np.ndarray | None:
+    """Squared distance of each point to its nearest new node, or None when there are few new
+    nodes (the screen then takes them all, which is cheaper than the tree)."""
+    if count <= _FEW_NEW_NODES:
+        return None
+    nearest, _ = tree.query(pts, k=1)
+    return nearest.reshape(-1).astype(np.float64) ** 2
+
+
+_FEW_NEW_NODES = 32
+
+
+@numba.njit(cache=True, nogil=True)
+def _may_change(pts, nodes, knn, new, nearest):
+    """(N,) points whose skinning a new node may change: a padding slot (a node repeated), or
+    a new node nearer than the farthest current neighbour (float32, with a margin)."""
+    n, k = knn.shape
+    out = np.zeros(n, np.bool_)
+    for i in range(n):
+        reach = np.float32(0.0)
+        for s in range(k):
+            a = knn[i, s]
+            d0, d1, d2 = nodes[a, 0] - pts[i, 0], nodes[a, 1] - pts[i, 1], nodes[a, 2] - pts[i, 2]
+            reach = max(reach, d0 * d0 + d1 * d1 + d2 * d2)
+            for t in range(s):
+                if knn[i, t] == a:
+                    out[i] = True
+        if out[i]:
+            continue
+        if nearest is None:
+            near = np.inf
+            for j in range(len(new)):
+                d0, d1, d2 = new[j, 0] - pts[i, 0], new[j, 1] - pts[i, 1], new[j, 2] - pts[i, 2]
+                near = min(near, float(d0) * d0 + float(d1) * d1 + float(d2) * d2)
+        else:
+            near = nearest[i]
+        out[i] = near < reach * (1 + 1e-4) + 1e-12
+    return out
+
+
 def update_skinning(knn: np.ndarray, weights: np.ndarray, points: np.ndarray, field: WarpField,
                     first_new_node: int) -> tuple[np.ndarray, np.ndarray]:
     """Skinning after nodes first_new_node.. were appended (SurfelWarp Sec. VI-D): each point's
@@ -215,20 +256,10 @@ def update_skinning(knn: np.ndarray, weights: np.ndarray, points: np.ndarray, fi
     pts = np.asarray(points, np.float32).reshape(-1, 3)
     k = knn.shape[1]
     tree = KDTree(new)
-    nearest, _ = tree.query(pts, k=1)
-    nearest = nearest.reshape(-1).astype(np.float64) ** 2
     # A float32 screen of the farthest current neighbour (with a margin over its rounding) picks
     # the few points a new node may come nearer; their distances are then taken in float64.
-    nodes32 = np.asarray(field.nodes, np.float32)
-    reach32 = np.zeros(len(pts), np.float32)
-    for s in range(k):
-        q = nodes32[knn[:, s]]
-        q -= pts
-        np.maximum(reach32, np.einsum("ij,ij->i", q, q), out=reach32)
-    padded = np.zeros(len(pts), bool)
-    for s in range(1, k):
-        padded |= np.any(knn[:, :s] == knn[:, s:s + 1], axis=1)
-    rows = np.flatnonzero(padded | (nearest < reach32 * (1 + 1e-4) + 1e-12))
+    rows = np.flatnonzero(_may_change(pts, np.asarray(field.nodes, np.float32), knn,
+                                      np.asarray(new, np.float32), _nearest_new(tree, pts, len(new))))
     old = knn[rows].astype(np.int64)
     d2_old = np.sum((pts[rows, None, :].astype(np.float64) - field.nodes[old]) ** 2, axis=-1)
     # Padding slots repeat an earlier node: they must not be kept twice.
@@ -236,7 +267,8 @@ def update_skinning(knn: np.ndarray, weights: np.ndarray, points: np.ndarray, fi
         d2_old[:, s][np.any(old[:, :s] == old[:, s:s + 1], axis=1)] = np.inf
     reach = np.max(np.where(np.isfinite(d2_old), d2_old, -1.0), axis=1)
     full = np.isinf(d2_old).any(axis=1)            # a padding slot: any new node is nearer
-    sub = np.flatnonzero(full | (nearest[rows] < reach))
+    nearest, _ = tree.query(pts[rows], k=1)
+    sub = np.flatnonzero(full | (nearest.reshape(-1).astype(np.float64) ** 2 < reach))
     hit, d2_old, old = rows[sub], d2_old[sub], old[sub]
     if len(hit) == 0:
         return knn, weights

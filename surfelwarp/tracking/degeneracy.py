@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from surfelwarp.geometry.se3 import se3_exp, se3_log, skew
@@ -53,19 +54,7 @@ class RigidInformation:
     def of_pairs(cls, points: np.ndarray, normals: np.ndarray, weights: np.ndarray | None = None
                  ) -> "RigidInformation":
         """From (3, M) world points and normals (components), weights (M,) or None."""
-        return cls._with_rows(points, normals, weights)[0]
-
-    @classmethod
-    def _with_rows(cls, points, normals, weights) -> tuple["RigidInformation", np.ndarray]:
-        """of_pairs, and the pairs' Jacobian rows (6, M) in its parametrisation."""
-        p, n = np.asarray(points, np.float64), np.asarray(normals, np.float64)
-        w = np.ones(p.shape[1]) if weights is None else np.asarray(weights, np.float64)
-        total = max(float(w.sum()), 1e-12)
-        centre = p @ w / total
-        q = p - centre[:, None]
-        length = max(float(np.sqrt(np.einsum("ij,ij,j->", q, q, w) / total)), 1e-3)
-        J = _rows(q, n, length)
-        return cls((J * w) @ J.T, Parametrisation(centre, length)), J
+        return _information(points, normals, weights, None)[0]
 
     def ratios(self) -> tuple[np.ndarray, np.ndarray]:
         """(6,) eigenvalues over the largest (ascending; all 0 without information) and the
@@ -107,21 +96,56 @@ class HeldDirections:
         return self.basis.T @ self.frame.from_twist_about(point)
 
 
-def _rows(q: np.ndarray, n: np.ndarray, length: float) -> np.ndarray:
-    """(6, M) d(n . p) / d(L omega, v_c) for p = c + q turned about c: ((q x n) / L, n)."""
-    J = np.empty((6, q.shape[1]))
-    J[0] = (q[1] * n[2] - q[2] * n[1]) / length
-    J[1] = (q[2] * n[0] - q[0] * n[2]) / length
-    J[2] = (q[0] * n[1] - q[1] * n[0]) / length
-    J[3:] = n
-    return J
+def _information(points, normals, weights, residuals) -> tuple[RigidInformation, np.ndarray]:
+    """The pairs' information and gradient sum w r J (zero without residuals)."""
+    p, n = np.ascontiguousarray(points, np.float64), np.ascontiguousarray(normals, np.float64)
+    w = np.ones(p.shape[1]) if weights is None else np.ascontiguousarray(weights, np.float64)
+    r = np.zeros(p.shape[1]) if residuals is None else np.ascontiguousarray(residuals, np.float64)
+    H, g, centre, length = _sums(p, n, w, r)
+    return RigidInformation(H, Parametrisation(centre, length)), g
+
+
+@numba.njit(cache=True, nogil=True)
+def _sums(p, n, w, r):
+    """H = sum w J J^T and g = sum w r J of the rows J = ((q x n) / L, n), q = p - c, about the
+    weighted centroid c with L the weighted RMS distance from it (at least 1 mm): the same
+    sums as whole-array products, in three passes and no (6, M) rows."""
+    m = p.shape[1]
+    total = 0.0
+    centre = np.zeros(3)
+    for i in range(m):
+        total += w[i]
+        for a in range(3):
+            centre[a] += w[i] * p[a, i]
+    total = max(total, 1e-12)
+    centre /= total
+    spread = 0.0
+    for i in range(m):
+        q0, q1, q2 = p[0, i] - centre[0], p[1, i] - centre[1], p[2, i] - centre[2]
+        spread += w[i] * (q0 * q0 + q1 * q1 + q2 * q2)
+    length = max(np.sqrt(spread / total), 1e-3)
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    J = np.empty(6)
+    for i in range(m):
+        q0, q1, q2 = p[0, i] - centre[0], p[1, i] - centre[1], p[2, i] - centre[2]
+        J[0] = (q1 * n[2, i] - q2 * n[1, i]) / length
+        J[1] = (q2 * n[0, i] - q0 * n[2, i]) / length
+        J[2] = (q0 * n[1, i] - q1 * n[0, i]) / length
+        J[3], J[4], J[5] = n[0, i], n[1, i], n[2, i]
+        for a in range(6):
+            g[a] += w[i] * r[i] * J[a]
+            for b in range(a, 6):
+                H[a, b] += w[i] * J[a] * J[b]
+    for a in range(6):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return H, g, centre, length
 
 
 def step(points: np.ndarray, normals: np.ndarray, residuals: np.ndarray, weights: np.ndarray | None,
          min_eigen_ratio: float) -> tuple[np.ndarray, RigidInformation]:
     """The weighted point-to-plane Gauss-Newton twist (omega, v) for exp(xi) p, remapped to
     the directions the pairs constrain; and the pairs' information."""
-    info, J = RigidInformation._with_rows(points, normals, weights)
-    r = np.asarray(residuals, np.float64)
-    g = J @ (r if weights is None else np.asarray(weights, np.float64) * r)
+    info, g = _information(points, normals, weights, residuals)
     return info.solve(g, min_eigen_ratio), info

@@ -168,8 +168,11 @@ def test_extend_of_a_rigid_field_stays_rigid():
     assert np.allclose(new_field.global_transforms(), G, atol=1e-9)
 
 
+@pytest.mark.parametrize("few_new_nodes", [0, 10 ** 6])      # the screen by k-d tree, and by all new nodes
 @pytest.mark.parametrize("start_nodes", [2, 0])
-def test_update_skinning_equals_skinning_from_scratch(start_nodes):
+def test_update_skinning_equals_skinning_from_scratch(start_nodes, few_new_nodes, monkeypatch):
+    import surfelwarp.deform.warp_field as warp_field
+    monkeypatch.setattr(warp_field, "_FEW_NEW_NODES", few_new_nodes)
     pts = bumpy_sheet(0.006)
     params = WarpFieldParams()
     if start_nodes:

@@ -122,3 +122,19 @@ def test_icp_follows_weak_directions_that_the_whole_view_moves_along():
     model, obs = depth_of(wall=False), depth_of(camera_shift_x=0.006, wall=False, seed=1)
     res = align(model, obs)
     assert res.T_camera_to_world[0, 3] == pytest.approx(0.006, abs=0.0005)
+
+
+def test_compiled_sums_equal_the_whole_array_products():
+    """H and g summed pair by pair equal (J w) J^T and J (w r) of the explicit rows."""
+    from surfelwarp.tracking.degeneracy import _information
+    rng = np.random.default_rng(8)
+    p, n = rng.normal(size=(3, 500)) + [[0.2], [0.1], [1.5]], rng.normal(size=(3, 500))
+    w, r = rng.random(500), rng.normal(size=500) * 0.01
+    info, g = _information(p, n, w, r)
+    c = p @ w / w.sum()
+    q = p - c[:, None]
+    L = np.sqrt(np.einsum("ij,ij,j->", q, q, w) / w.sum())
+    J = np.concatenate([np.cross(q.T, n.T).T / L, n])
+    assert np.allclose(info.frame.centre, c) and info.frame.length_m == pytest.approx(L)
+    assert np.allclose(info.H, (J * w) @ J.T, rtol=1e-12, atol=1e-12)
+    assert np.allclose(g, J @ (w * r), rtol=1e-12, atol=1e-14)

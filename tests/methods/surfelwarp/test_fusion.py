@@ -317,3 +317,50 @@ def test_covered_pixels_are_not_appended(gl, obs):
     assert unmatched_depth_pixels(obs, fused, render(sparse)).sum() < 0.02 * obs.num_valid
     own = unmatched_depth_pixels(obs, fused, render(sparse), FusionParams(coverage_px=0))
     assert own.sum() > 0.3 * obs.num_valid
+
+
+def test_compiled_searches_equal_a_per_pixel_reference():
+    """The compiled window search and duplicate marking against plain loops over a random
+    index map with ties in confidence (the order rules decide)."""
+    from surfelwarp.methods.surfelwarp.fusion_kernels import best_in_windows, mark_redundant
+    rng = np.random.default_rng(9)
+    n, h, w, window = 400, 24, 32, 4
+    index = np.where(rng.random((h, w)) < 0.6, rng.integers(0, n, (h, w)), -1).astype(np.int32)
+    points = rng.normal(scale=0.01, size=(n, 3)).astype(np.float32)
+    normals = np.tile(np.float32([0, 0, -1]), (n, 1)) + rng.normal(scale=0.2, size=(n, 3)).astype(np.float32)
+    conf = rng.integers(0, 3, n).astype(np.float32)
+    rows, cols = np.nonzero(rng.random((h // 4, w // 4)) < 0.8)
+    o_r, o_c = 4 * rows - 1, 4 * cols - 1                  # windows reaching over the map's edge
+    vertex = rng.normal(scale=0.01, size=(len(rows), 3)).astype(np.float32)
+    normal = np.tile(np.float32([0, 0, -1]), (len(rows), 1))
+    gate2 = np.full(len(rows), 0.015 ** 2, np.float32)
+    best_k, best_d2 = np.empty(len(rows), np.int64), np.empty(len(rows), np.float32)
+    best_in_windows(index, o_r, o_c, window + 2, points, normals, vertex, normal, gate2, np.float32(0.9), conf,
+                    best_k, best_d2)
+    for p in range(len(rows)):
+        cands = []
+        for dy in range(window + 2):
+            for dx in range(window + 2):
+                y, x = o_r[p] + dy, o_c[p] + dx
+                if 0 <= y < h and 0 <= x < w and index[y, x] >= 0:
+                    k = index[y, x]
+                    d2 = np.sum((points[k] - vertex[p]) ** 2)
+                    if d2 <= gate2[p] and normals[k] @ normal[p] >= np.float32(0.9):
+                        cands.append((-conf[k], d2, len(cands), k))
+        assert best_k[p] == (min(cands)[3] if cands else -1)
+    radius = rng.uniform(0.005, 0.02, n).astype(np.float32)
+    fr, fc = np.nonzero(index >= 0)
+    drop = np.zeros(n, bool)
+    mark_redundant(index, index[fr, fc].astype(np.int64), fr, fc, 1, points, normals, radius, conf,
+                   np.float32(0.5), np.float32(0.95), drop)
+    expected = np.zeros(n, bool)
+    for j, y0, x0 in zip(index[fr, fc], fr, fc):
+        for y in range(max(y0 - 1, 0), min(y0 + 2, h)):
+            for x in range(max(x0 - 1, 0), min(x0 + 2, w)):
+                i = index[y, x]
+                if i < 0 or i == j:
+                    continue
+                limit = np.float32(0.5) * min(radius[i], radius[j])
+                if np.sum((points[j] - points[i]) ** 2) < limit * limit and normals[j] @ normals[i] > np.float32(0.95):
+                    expected[j if conf[j] < conf[i] or (conf[j] == conf[i] and j > i) else i] = True
+    assert drop.any() and np.array_equal(drop, expected)
