@@ -47,8 +47,9 @@ class BlockPattern:
         self.edge_j, self.edge_i = j[real], i[real]
         ej, ei = self.edge_j, self.edge_i
         self.edge_flip = ei > ej
-        slots = np.concatenate([self.keys(ei, ei), self.keys(ej, ej),
-                                self.keys(np.minimum(ei, ej), np.maximum(ei, ej))])
+        self.reg_slots = np.stack([self.keys(ei, ei), self.keys(ej, ej),
+                                   self.keys(np.minimum(ei, ej), np.maximum(ei, ej))])
+        slots = self.reg_slots.reshape(-1)
         sign = np.repeat([1.0, 1.0, -1.0], len(ei))
         self._reg_scatter = sp.csc_matrix((sign, slots, np.arange(len(slots) + 1)), shape=(self.n_upper, len(slots)))
 
@@ -337,6 +338,14 @@ class NormalEquations:
     upper: np.ndarray | None = None     # (n_upper, 6, 6) the pattern's upper blocks (None: zero)
     gradient: np.ndarray | None = None  # (M, 6)
     border: Border | None = None
+
+    def blocks(self) -> np.ndarray:
+        """The upper blocks (n_upper, 6, 6) to add into in place (zeros if no term added yet)."""
+        if self.upper is None:
+            self.upper = np.zeros((self.pattern.n_upper, 6, 6))
+        if self.gradient is None:
+            self.gradient = np.zeros((self.pattern.num_nodes, 6))
+        return self.upper
 
     def add(self, gradient: np.ndarray, upper: np.ndarray | None = None, diagonal: np.ndarray | None = None) -> None:
         """Add a term's gradient (M, 6) and its blocks: on the whole pattern (n_upper, 6, 6) or

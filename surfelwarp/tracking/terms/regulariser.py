@@ -7,6 +7,7 @@ alpha_ij = max(sigma_i, sigma_j) is a constant here).
 """
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from surfelwarp.deform.warp_field import WarpField
@@ -64,6 +65,71 @@ def regulariser_blocks(field: WarpField, pattern: BlockPattern) -> tuple[np.ndar
     return blocks, g.reshape(m, 6)
 
 
+@numba.njit(cache=True, nogil=True)
+def _add_regulariser(p, L, edge_j, edge_i, slots, flip, lam, upper, grad):
+    """regulariser_blocks of the edges (j, i), times lam, added into upper and grad; returns the
+    sum of squared residuals. Per edge, with a = L_i (p_j - p_i), t = t_j and the residual r:
+    blocks (i, i) += pair(a, a), (j, j) += pair(t, t), (i, j) -= pair(a, t) (stored as (j, i)
+    -= pair(t, a) when j < i); gradient i += (a x r, r), j -= (t x r, r). pair(u, v) is
+    [[(u.v) I - v u^T, [u]x], [-[v]x, I]]."""
+    total = 0.0
+    for e in range(len(edge_j)):
+        j, i = edge_j[e], edge_i[e]
+        a = np.empty(3)
+        for c in range(3):
+            a[c] = L[i, c, 3]
+            for d in range(3):
+                a[c] += L[i, c, d] * (p[j, d] - p[i, d])
+        t = np.empty(3)
+        for c in range(3):
+            t[c] = L[j, c, 3]
+        r = np.empty(3)
+        for c in range(3):
+            r[c] = p[i, c] + a[c] - p[j, c] - t[c]
+            total += r[c] * r[c]
+        _add_pair(upper[slots[0, e]], a, a, lam)
+        _add_pair(upper[slots[1, e]], t, t, lam)
+        if flip[e]:
+            _add_pair(upper[slots[2, e]], t, a, -lam)
+        else:
+            _add_pair(upper[slots[2, e]], a, t, -lam)
+        _add_gradient(grad[i], a, r, lam)
+        _add_gradient(grad[j], t, r, -lam)
+    return total
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _add_gradient(g, u, r, scale):
+    """g += scale * (u x r, r)."""
+    g[0] += scale * (u[1] * r[2] - u[2] * r[1])
+    g[1] += scale * (u[2] * r[0] - u[0] * r[2])
+    g[2] += scale * (u[0] * r[1] - u[1] * r[0])
+    for c in range(3):
+        g[3 + c] += scale * r[c]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _add_pair(block, u, v, scale):
+    """block += scale * [[(u.v) I - v u^T, [u]x], [-[v]x, I]]."""
+    uv = u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+    for r in range(3):
+        for c in range(3):
+            block[r, c] += scale * ((uv if r == c else 0.0) - v[r] * u[c])
+        block[3 + r, 3 + r] += scale
+    block[0, 4] -= scale * u[2]
+    block[0, 5] += scale * u[1]
+    block[1, 3] += scale * u[2]
+    block[1, 5] -= scale * u[0]
+    block[2, 3] -= scale * u[1]
+    block[2, 4] += scale * u[0]
+    block[3, 1] += scale * v[2]
+    block[3, 2] -= scale * v[1]
+    block[4, 0] -= scale * v[2]
+    block[4, 2] += scale * v[0]
+    block[5, 0] += scale * v[1]
+    block[5, 1] -= scale * v[0]
+
+
 class RegulariserTerm(BaseTerm):
     def __init__(self, lambda_reg: float):
         self.lambda_reg = lambda_reg
@@ -72,9 +138,13 @@ class RegulariserTerm(BaseTerm):
         return self.lambda_reg * float(np.sum(reg_residuals(at.field) ** 2))
 
     def linearize(self, at: Iterate, system: NormalEquations) -> float:
-        blocks, g = regulariser_blocks(at.field, system.pattern)
-        system.add(self.lambda_reg * g, upper=self.lambda_reg * blocks)
-        return self.energy(at)
+        # regulariser_blocks summed straight into the system's blocks (compiled): a room's
+        # pattern holds ~10^5 blocks, and a pattern-sized array per term cost more than its sums.
+        field, pattern = at.field, system.pattern
+        upper = system.blocks()
+        return self.lambda_reg * _add_regulariser(
+            field.nodes.astype(np.float64), np.ascontiguousarray(field.transforms), pattern.edge_j, pattern.edge_i,
+            pattern.reg_slots, pattern.edge_flip, self.lambda_reg, upper, system.gradient)
 
 
 @register("regulariser")
