@@ -96,3 +96,39 @@ def test_bilateral_filter_keeps_a_constant_surface_beside_holes():
     depth[5:9, 5:9] = 0
     out = bilateral_filter(depth, PreprocessParams())
     np.testing.assert_allclose(out[depth > 0], 1.5, rtol=1e-6)
+
+
+def _normal_map_numpy(vertex_map, depth_m):
+    """normal_map in whole-image numpy: its reference."""
+    h, w = depth_m.shape
+    valid = np.zeros((h, w), dtype=bool)
+    d = depth_m > 0
+    valid[1:-1, 1:-1] = d[1:-1, 1:-1] & d[1:-1, 2:] & d[1:-1, :-2] & d[2:, 1:-1] & d[:-2, 1:-1]
+    v = np.asarray(vertex_map, np.float32)
+    du = [v[1:-1, 2:, i] - v[1:-1, :-2, i] for i in range(3)]
+    dv = [v[2:, 1:-1, i] - v[:-2, 1:-1, i] for i in range(3)]
+    n = [du[1] * dv[2] - du[2] * dv[1], du[2] * dv[0] - du[0] * dv[2], du[0] * dv[1] - du[1] * dv[0]]
+    length = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    inner = valid[1:-1, 1:-1] & (length > 0)
+    centre = v[1:-1, 1:-1]
+    toward = n[0] * centre[..., 0] + n[1] * centre[..., 1] + n[2] * centre[..., 2]
+    scale = np.where(inner, np.float32(1.0) / np.maximum(length, np.float32(1e-20)), np.float32(0.0))
+    scale = np.where(toward > 0, -scale, scale)
+    normals = np.zeros((h, w, 3), np.float32)
+    for i in range(3):
+        normals[1:-1, 1:-1, i] = n[i] * scale
+    valid[1:-1, 1:-1] = inner
+    return normals, valid
+
+
+def test_compiled_normal_map_equals_the_numpy_reference():
+    from surfelwarp.preprocess import normal_map
+    rng = np.random.default_rng(5)
+    depth = (1.0 + 0.2 * rng.random((60, 80))).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.1] = 0.0                       # holes
+    intr = Intrinsics(70.0, 70.0, 39.5, 29.5, 80, 60)
+    vertex = intr.backproject(depth)
+    normals, valid = normal_map(vertex, depth)
+    ref_n, ref_valid = _normal_map_numpy(vertex, depth)
+    assert valid.sum() > 1000 and np.array_equal(valid, ref_valid)
+    assert np.abs(normals - ref_n).max() < 1e-6
