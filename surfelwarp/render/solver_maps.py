@@ -69,10 +69,12 @@ def render_solver_maps(positions: np.ndarray, normals: np.ndarray, radii: np.nda
 
 def maps_to_world(maps: SolverMaps, T_camera_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Solver maps in world coordinates, zero where no surfel was drawn (as rigid ICP expects)."""
-    hit = (maps.index >= 0)[..., None]
-    R = T_camera_to_world[:3, :3].astype(np.float32)
+    hit = (maps.index >= 0).astype(np.float32)
+    R = np.ascontiguousarray(T_camera_to_world[:3, :3].T, np.float32)
     # Whole maps (no masked gathers): the empty pixels' zeros turn into zeros, and the shift is
-    # added where a surfel was drawn only.
-    vertex = maps.vertex @ R.T
-    vertex += hit * T_camera_to_world[:3, 3].astype(np.float32)
-    return vertex, maps.normal @ R.T
+    # added where a surfel was drawn, a component at a time (broadcasting a (3,) row over the
+    # last axis runs numpy's inner loop three elements long).
+    vertex = maps.vertex @ R
+    for i in range(3):
+        vertex[..., i] += np.float32(T_camera_to_world[i, 3]) * hit
+    return vertex, maps.normal @ R
