@@ -1,9 +1,11 @@
 """The damped Gauss-Newton step: (H + mu I) x = -g, mu = damping * mean(diag H).
 
 By conjugate gradients with a block-Jacobi (per-node 6x6) preconditioner, as the GPU solver of
-Dou et al. that SurfelWarp follows, falling back to sparse LU (SuperLU) when it does not reach
-its tolerance; with rest anchors the system is bordered by one more 6-variable block (Bordered).
-Nodes held out of the solve are removed from the system (restrict) and get a zero step.
+Dou et al. that SurfelWarp follows, compiled and run on the system's upper blocks as they are
+(_pcg; solve_step_pcg is its numpy form on an assembled matrix), falling back to sparse LU
+(SuperLU) when it does not reach its tolerance; with rest anchors the system is bordered by one
+more 6-variable block (Bordered). Nodes held out of the solve get a zero step (masked in the
+compiled PCG, removed from the matrix for LU by restrict).
 """
 from __future__ import annotations
 
@@ -60,9 +62,9 @@ def solve_system(system: NormalEquations, damping: float, linear_solver: str = "
         step = _pcg_on_blocks(system, damping, pcg_rtol, pcg_max_iterations)
         if step is not None:
             return step
-    H, g, diag = pattern.matrix(system.upper), system.gradient.reshape(-1), system.upper[pattern.diag]
+    H, g = pattern.matrix(system.upper), system.gradient.reshape(-1)
     if not free.all():
-        H, g, diag = restrict(H, g, diag, free)
+        H, g, _ = restrict(H, g, system.upper[pattern.diag], free)
     if border is not None:
         H, g = Bordered(H, border.B[free], border.C), np.concatenate([g, border.g])
     xi = solve_step(H.tosparse() if border is not None else H, g, damping)
