@@ -48,8 +48,10 @@ void main() {
     // +1 on each side: pixel centres within the box are strictly inside despite rounding.
     vec2 half_size = min(0.5 * (hi - lo) + 1.0, vec2(0.5 * u_max_size));
     if (any(isnan(centre)) || any(isinf(centre)) || any(isnan(half_size))) return;
-    ivec2 first = ivec2(max(ceil(centre - half_size), vec2(0.0)));
-    ivec2 last = ivec2(min(ceil(centre + half_size) - 1.0, vec2(u_size - 1)));
+    // Clamped on both sides before the conversion to int (a float beyond int range converts
+    // to anything).
+    ivec2 first = ivec2(clamp(ceil(centre - half_size), vec2(0.0), vec2(u_size)));
+    ivec2 last = ivec2(clamp(ceil(centre + half_size) - 1.0, vec2(-1.0), vec2(u_size - 1)));
     float ez = r * sqrt(max(1.0 - n.z * n.z, 0.0));
     uint layer = e < u_first_count ? 0x80000000u : 0u;
     for (int v = first.y; v <= last.y; ++v) {
