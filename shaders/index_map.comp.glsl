@@ -15,7 +15,9 @@ uniform uint u_count;
 uniform int u_pass;
 
 void main() {
-    uint i = gl_GlobalInvocationID.x;
+    // Groups are dispatched on a 2-D grid (a dimension holds at most 65535 of them).
+    uint i = (gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x) * gl_WorkGroupSize.x
+        + gl_LocalInvocationID.x;
     if (i >= u_count) return;
     vec3 p = vec3(pos[3u * i], pos[3u * i + 1u], pos[3u * i + 2u]);
     // The negated test also rejects NaN depths.

@@ -23,7 +23,9 @@ uniform uint u_first_count;   // elements before this are the first set, the res
 uniform int u_pass;
 
 void main() {
-    uint e = gl_GlobalInvocationID.x;
+    // Groups are dispatched on a 2-D grid (a dimension holds at most 65535 of them).
+    uint e = (gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x) * gl_WorkGroupSize.x
+        + gl_LocalInvocationID.x;
     if (e >= u_count) return;
     uint i = element[e];
     vec3 p = vec3(pos[3u * i], pos[3u * i + 1u], pos[3u * i + 2u]);

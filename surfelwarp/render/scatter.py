@@ -16,6 +16,7 @@ from surfelwarp.render.context import gl_context
 from surfelwarp.render.shaders import load_compute
 
 GROUP = 64     # local_size_x of the compute shaders
+MAX_GROUPS_X = 65535    # GL's guaranteed work-group count per dimension: more go on a 2-D grid
 
 
 class Scatter:
@@ -42,9 +43,10 @@ class Scatter:
         out = np.zeros(height * width, np.uint32)
         if count:
             groups = (count + GROUP - 1) // GROUP
+            grid = (min(groups, MAX_GROUPS_X), (groups + MAX_GROUPS_X - 1) // MAX_GROUPS_X)
             for p in (0, 1):
                 self.program["u_pass"].value = p
-                self.program.run(groups)
+                self.program.run(*grid)
                 self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
             self.index.buffer.read_into(out, size=nbytes)
         # Stored as ~index (0: empty): ~0 wraps to -1 in int32.

@@ -38,8 +38,11 @@ def reference_index(p, intr):
     return out.reshape(intr.height, intr.width)
 
 
+@pytest.mark.parametrize("groups_x", [None, 7])     # 7: the work groups on a 2-D grid, as past 4.2M surfels
 @pytest.mark.parametrize("supersample", [1, 4])
-def test_index_map_matches_numpy_projection(supersample):
+def test_index_map_matches_numpy_projection(supersample, groups_x, monkeypatch):
+    if groups_x:
+        monkeypatch.setattr("surfelwarp.render.scatter.MAX_GROUPS_X", groups_x)
     p, n, c = random_surfels(60_000, seed=supersample)
     maps = render_index_map(p, n, K, supersample=supersample, confidence=c)
     intr = K.supersampled(supersample)

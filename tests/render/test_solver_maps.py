@@ -69,7 +69,10 @@ def scene(seed=3):
     return p, n, r
 
 
-def test_solver_maps_match_ray_disk_reference():
+@pytest.mark.parametrize("groups_x", [None, 3])     # 3: the work groups on a 2-D grid, as past 4.2M surfels
+def test_solver_maps_match_ray_disk_reference(groups_x, monkeypatch):
+    if groups_x:
+        monkeypatch.setattr("surfelwarp.render.scatter.MAX_GROUPS_X", groups_x)
     p, n, r = scene()
     maps = render_solver_maps(p, n, r, K)
     assert maps.index.shape == (K.height, K.width) and maps.index.dtype == np.int32
