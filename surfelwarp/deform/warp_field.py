@@ -202,16 +202,13 @@ def skin(points: np.ndarray, nodes: np.ndarray, k: int, sigma_m: float) -> tuple
     return _finish(d * d, idx, k, sigma_m)
 
 
-def _nearest_new(tree: KDTree, pts: np.ndarray, count: int) -> np.ndarray | None:
-    """Squared distance of each point to its nearest new node, or None when there are few new
-    nodes (the screen then takes them all, which is cheaper than the tree)."""
-    if count <= _FEW_NEW_NODES:
-        return None
+_FEW_NEW_NODES = 32     # up to this many new nodes the skinning screen tries them all
+
+
+def _nearest_new(tree: KDTree, pts: np.ndarray) -> np.ndarray:
+    """Squared distance of each point to its nearest new node (float64)."""
     nearest, _ = tree.query(pts, k=1)
     return nearest.reshape(-1).astype(np.float64) ** 2
-
-
-_FEW_NEW_NODES = 32
 
 
 @numba.njit(cache=True, nogil=True)
@@ -258,8 +255,10 @@ def update_skinning(knn: np.ndarray, weights: np.ndarray, points: np.ndarray, fi
     tree = KDTree(new)
     # A float32 screen of the farthest current neighbour (with a margin over its rounding) picks
     # the few points a new node may come nearer; their distances are then taken in float64.
+    # With few new nodes the screen tries them all, cheaper than the tree for every point.
+    nearest = None if len(new) <= _FEW_NEW_NODES else _nearest_new(tree, pts)
     rows = np.flatnonzero(_may_change(pts, np.asarray(field.nodes, np.float32), knn,
-                                      np.asarray(new, np.float32), _nearest_new(tree, pts, len(new))))
+                                      np.asarray(new, np.float32), nearest))
     old = knn[rows].astype(np.int64)
     d2_old = np.sum((pts[rows, None, :].astype(np.float64) - field.nodes[old]) ** 2, axis=-1)
     # Padding slots repeat an earlier node: they must not be kept twice.
@@ -267,8 +266,8 @@ def update_skinning(knn: np.ndarray, weights: np.ndarray, points: np.ndarray, fi
         d2_old[:, s][np.any(old[:, :s] == old[:, s:s + 1], axis=1)] = np.inf
     reach = np.max(np.where(np.isfinite(d2_old), d2_old, -1.0), axis=1)
     full = np.isinf(d2_old).any(axis=1)            # a padding slot: any new node is nearer
-    nearest, _ = tree.query(pts[rows], k=1)
-    sub = np.flatnonzero(full | (nearest.reshape(-1).astype(np.float64) ** 2 < reach))
+    nearest = _nearest_new(tree, pts[rows]) if nearest is None else nearest[rows]
+    sub = np.flatnonzero(full | (nearest < reach))
     hit, d2_old, old = rows[sub], d2_old[sub], old[sub]
     if len(hit) == 0:
         return knn, weights

@@ -4,7 +4,7 @@ normal, in one pass with no (N, 8) or (3, N) temporaries.
 
 numpy computes the same in dual_quaternion.dq_blend_indexed / apply_components (the reference
 the tests compare these with): a few dozen whole-array operations per chunk, each a pass over
-memory. Fused, the warp of a 275k-surfel model takes ~6 ms instead of ~45 ms (tube-wall).
+memory. Fused, the warp of 275k points with normals takes 15-20 ms instead of ~55 ms.
 """
 from __future__ import annotations
 

@@ -118,17 +118,12 @@ def _levels(model_vertex, model_normal, model_weight, observation, model_intrins
     return levels[::-1]
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
 def _associate(level: _Level, T: np.ndarray, T_world_to_model: np.ndarray, min_normal_cos: float):
     """World observation points (3, M), model normals (3, M), residuals (M,) and weights (M,)
     or None of the gated projective pairs."""
     intr = level.intrinsics
-    f32 = np.float32
-    out_p, out_n, r, w = (np.empty((3, level.obs_vertex.shape[1]), f32), np.empty((3, level.obs_vertex.shape[1]), f32),
-                          np.empty(level.obs_vertex.shape[1], f32), np.empty(level.obs_vertex.shape[1], f32))
+    f32, n = np.float32, level.obs_vertex.shape[1]
+    out_p, out_n, r, w = np.empty((3, n), f32), np.empty((3, n), f32), np.empty(n, f32), np.empty(n, f32)
     weights = level.model_weight if level.model_weight is not None else np.ones(1, f32)
     k = _pairs(level.obs_vertex, level.obs_normal, level.model_vertex, level.model_normal, level.model_valid,
                weights, level.model_weight is not None, np.ascontiguousarray(T[:3], f32),
