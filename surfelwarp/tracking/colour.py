@@ -18,7 +18,7 @@ from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
                                           ModelView, checked_pairs, checked_points, combine, detect, flow_at,
                                           flow_pairs, grid_pixels, lift, locally_rigid, match_descriptors,
-                                          match_frames, mean_draw_offset, near_prediction, on_model_map,
+                                          match_frames, mean_draw_offset, near_prediction, on_model_map, refine,
                                           solved_index)
 
 
@@ -54,8 +54,8 @@ class ColourMatcher:
             return
         d, j = KDTree(np.asarray(ref_position, np.float64)).query(world)
         near = d < self.params.anchor_distance_m
-        self._keyframe = Keyframe(Keypoints(kp.pixels[ok][near], kp.descriptors[ok][near]), world[near],
-                                  np.asarray(ids)[j[near]])
+        self._keyframe = Keyframe(Keypoints(kp.pixels[ok][near], kp.descriptors[ok][near], kp.image), world[near],
+                                  np.asarray(ids)[j[near]], np.where(obs.valid, obs.vertex_map[..., 2], 0.0))
 
     def matches(self, obs: CameraObservation, model: ModelView | None, field: WarpField | None,
                 T_previous: np.ndarray, T_camera_to_world: np.ndarray) -> AnchoredMatches | None:
@@ -91,7 +91,9 @@ class ColourMatcher:
         if len(model.ids) == 0:
             return combine()
         ia, ib = match_descriptors(kf.keypoints, kp, p)
-        q, ok = lift(kp.pixels[ib], obs.vertex_map, obs.valid)
+        pixels, keep = refine(kf.keypoints.image, kp.image, kf.keypoints.pixels[ia], kp.pixels[ib], p, kf.depth)
+        ia, ib, pixels = ia[keep], ib[keep], pixels[keep]
+        q, ok = lift(pixels, obs.vertex_map, obs.valid)
         index = np.minimum(np.searchsorted(model.ids, kf.ids[ia]), len(model.ids) - 1)
         ok &= model.ids[index] == kf.ids[ia]          # surfels removed since are gone
         ia, q, index = ia[ok], q[ok], index[ok]
@@ -115,7 +117,8 @@ class ColourMatcher:
         p = self.params
         current = (obs.vertex_map, obs.valid, T_last_to_now, p)
         if model.color_map is None or model.vertex_map is None or not model.color_drawn.any():
-            pairs = flow_pairs(last.color, obs.color, last.valid, obs.valid, p)
+            pairs = flow_pairs(last.color, obs.color, last.valid, obs.valid, p,
+                               np.where(last.valid, last.vertex_map[..., 2], 0.0))
             return self._on_model(checked_pairs(*pairs, last.vertex_map, last.valid, *current), model, field,
                                   p.flow_weight)
         # Each drawn colour is its surfel's, whose centre lies up to a pixel off the pixel that
@@ -128,7 +131,8 @@ class ColourMatcher:
         grid = grid_pixels(drawn, p.flow_stride_px).astype(np.int64)
         centres = model.vertex_map[grid[:, 1], grid[:, 0]].astype(np.float64)
         pa = self.intrinsics.project(centres).astype(np.float32)
-        pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa)
+        depth = np.where(drawn, model.vertex_map[..., 2], np.where(last.valid, last.vertex_map[..., 2], 0.0))
+        pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa, p, depth)
         pb += mean_draw_offset(model.vertex_map, drawn, self.intrinsics)[grid[:, 1], grid[:, 0]]
         m = checked_points(pa[inside], pb[inside], centres[inside], np.ones(int(inside.sum()), bool), *current)
         return self._on_model(m, model, field, p.flow_weight)

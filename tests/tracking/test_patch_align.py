@@ -1,0 +1,127 @@
+"""Patch alignment (affine Lucas-Kanade with gain and offset projected out): the compiled kernel
+against its numpy reference, known affine warps, the Jacobian by finite differences, the depth
+mask at an edge, and its error cases."""
+import cv2
+import numpy as np
+import pytest
+
+from surfelwarp.tracking.patch_align import (ALIGNED, FAILED, UNALIGNED, _bilinear, _patch, align, align_reference,
+                                             steepest_descent)
+
+
+def texture(h=240, w=320, seed=0):
+    """Smooth random texture (blobs of ~6 px), 8-bit."""
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (h, w)), (0, 0), 2.5)
+    return np.clip(128 + 3.0 * (img - img.mean()), 0, 255).astype(np.uint8)
+
+
+def affine_pair(angle_deg=8.0, scale=1.04, shift=(0.37, -0.61), gain=1.3, offset=-20.0, seed=0):
+    """An image and its affine warp (plus gain/offset and 8-bit noise); the map old -> new pixel."""
+    a = texture(seed=seed)
+    h, w = a.shape
+    A = cv2.getRotationMatrix2D((w / 2, h / 2), angle_deg, scale)
+    A[:, 2] += shift
+    b = cv2.warpAffine(a.astype(np.float64), A, (w, h), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    b = gain * b + offset + np.random.default_rng(seed + 1).normal(0.0, 1.0, b.shape)
+    return a, np.clip(np.rint(b), 0, 255).astype(np.uint8), lambda p: p @ A[:, :2].T + A[:, 2]
+
+
+def grid(h=240, w=320, margin=24, step=12):
+    y, x = np.mgrid[margin:h - margin:step, margin:w - margin:step]
+    return np.stack([x.ravel(), y.ravel()], -1).astype(np.float64)
+
+
+def test_smoke_shapes_and_empty_input():
+    a = texture()
+    moved, aligned = align(a, a, np.zeros((0, 2)), np.zeros((0, 2)), 6)
+    assert moved.shape == (0, 2) and aligned.shape == (0,)
+    pa = grid()[:5]
+    moved, status = align(a, a, pa, pa + 0.3, 6)
+    assert moved.shape == (5, 2) and np.all(status == ALIGNED)
+    assert np.abs(moved - pa).max() < 0.01          # the same image: back to where it started
+
+
+def test_known_affine_warp_with_gain_is_recovered():
+    a, b, forward = affine_pair()
+    pa = grid()
+    truth = forward(pa)
+    start = truth + np.random.default_rng(3).uniform(-1.0, 1.0, truth.shape)   # a flow estimate 1 px off
+    moved, status = align(a, b, pa, start, 6)
+    error = np.linalg.norm(moved - truth, axis=1)
+    assert np.mean(status == ALIGNED) > 0.97
+    assert np.median(error) < 0.03, np.percentile(error, [50, 90])
+    assert np.mean(error < 0.1) > 0.95, np.percentile(error, [50, 90, 99])
+    # translation alone on the same patches does far worse under the turn: what the affine warp buys
+    lk, _, _ = cv2.calcOpticalFlowPyrLK(a, b, pa.astype(np.float32).reshape(-1, 1, 2),
+                                        start.astype(np.float32).reshape(-1, 1, 2), winSize=(13, 13), maxLevel=0,
+                                        flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    assert np.median(np.linalg.norm(lk.reshape(-1, 2) - truth, axis=1)) > 3 * np.median(error)
+
+
+def test_compiled_kernel_equals_the_numpy_reference():
+    a, b, forward = affine_pair(angle_deg=3.0, seed=4)
+    pa = np.vstack([grid(), [[1.0, 2.0], [318.5, 238.2]]])          # two patches over the border
+    start = forward(pa) + 0.5
+    depth = np.where(np.arange(320)[None, :] < 160, 1.0, 1.5) * np.ones((240, 1))
+    for d in (None, depth):
+        moved, status = align(a, b, pa, start, 5, d)
+        ref, ref_status = align_reference(a, b, pa, start, 5, d)
+        assert np.array_equal(status, ref_status) and 0.5 < np.mean(status == ALIGNED) < 1.0
+        assert np.allclose(moved, ref, atol=1e-7), np.abs(moved - ref).max()
+
+
+def test_steepest_descent_images_match_finite_differences():
+    y, x = np.mgrid[0:120, 0:160].astype(np.float64)
+    smooth = 120 + 60 * np.sin(x / 9.0) * np.cos(y / 11.0) + 30 * np.sin((x + y) / 13.0)
+    pa = np.array([[60.3, 50.7], [90.0, 70.2]])
+    ox, oy, _ = _patch(4)
+    sd = steepest_descent(smooth, pa, ox, oy)
+    eps = 1e-3
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = eps
+
+        def sample(sign):
+            a00, a01, tx, a10, a11, ty = sign * d
+            return _bilinear(smooth, pa[:, :1] + (1 + a00) * ox + a01 * oy + tx,
+                             pa[:, 1:] + a10 * ox + (1 + a11) * oy + ty)
+        numeric = (sample(1) - sample(-1)) / (2 * eps)
+        scale = np.abs(numeric).max()
+        # Scharr's smoothed derivative against the bilinear image's: a few per cent on this texture
+        assert np.abs(sd[..., k] - numeric).max() < 0.04 * scale, (k, np.abs(sd[..., k] - numeric).max(), scale)
+
+
+def test_depth_mask_keeps_the_patch_on_its_surface():
+    """Left half moves 2 px right, right half (farther) stays: a patch across the edge follows
+    its centre's surface only when the depth masks the other."""
+    a = texture(seed=5)
+    h, w = a.shape
+    b = a.copy()
+    b[:, 162:] = a[:, 160:-2]      # the near (right) half moved 2 px right
+    depth = np.where(np.arange(w)[None, :] >= 160, 1.0, 2.0) * np.ones((h, 1))
+    pa = np.stack([np.full(15, 163.0), np.linspace(30, 210, 15)], -1)      # centres 3 px into the moving half
+    truth = pa + [2.0, 0.0]
+    masked, status = align(a, b, pa, pa + [1.0, 0.0], 6, depth, 0.1)
+    plain, _ = align(a, b, pa, pa + [1.0, 0.0], 6)
+    assert np.all(status == ALIGNED)
+    assert np.abs(masked - truth).max() < 0.05
+    assert np.median(np.abs(plain - truth)[:, 0]) > 0.2          # mixing the two motions
+
+
+def test_too_little_of_the_surface_is_not_aligned():
+    a = texture()
+    depth = np.zeros(a.shape)
+    depth[100:103, 100:103] = 1.0          # the centre's surface is a 3x3 island
+    moved, status = align(a, a, np.array([[101.0, 101.0]]), np.array([[101.5, 101.0]]), 6, depth)
+    assert status[0] == UNALIGNED and np.allclose(moved, [[101.5, 101.0]])
+
+
+def test_plain_patches_cannot_say_and_textured_ones_that_match_nothing_fail():
+    a = texture()
+    pa = grid()[:20]
+    plain = np.full(a.shape, 100, np.uint8)
+    moved, status = align(plain, a, pa, pa + 0.5, 6)
+    assert np.all(status == UNALIGNED) and np.array_equal(moved, pa + 0.5)
+    moved, status = align(a, np.roll(a, 40, axis=1), pa, pa + 0.5, 6)       # the match is 40 px away
+    assert np.mean(status == FAILED) > 0.9 and np.array_equal(moved[status == FAILED], (pa + 0.5)[status == FAILED])
