@@ -29,7 +29,7 @@ NOISE_GREY = 2.0             # image noise (8-bit grey levels) and the precision
 PLAIN_PX = 0.2               # must allow against it (its weakest gradient direction), or it is plain
 ALIGNED, UNALIGNED, FAILED = 1, 0, -1    # status: aligned; no say (plain patch, too little of its
                                          # surface); textured, but nothing matches near the start
-TRANSLATION_ITERS = 20        # iterations of the shift alone, at most, before the affine ones
+TRANSLATION_ITERS = 20       # iterations of the shift alone, at most, before the affine ones
 
 
 @numba.njit(cache=True, inline="always")

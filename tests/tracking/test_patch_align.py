@@ -3,7 +3,6 @@ against its numpy reference, known affine warps, the Jacobian by finite differen
 mask at an edge, and its error cases."""
 import cv2
 import numpy as np
-import pytest
 
 from surfelwarp.tracking.patch_align import (ALIGNED, FAILED, UNALIGNED, _bilinear, _patch, align, align_reference,
                                              steepest_descent)
