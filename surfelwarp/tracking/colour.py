@@ -19,7 +19,7 @@ from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, Featu
                                           ModelView, checked_pairs, checked_points, combine, detect, flow_at,
                                           flow_pairs, grid_pixels, lift, locally_rigid, match_descriptors,
                                           match_frames, mean_draw_offset, near_prediction, on_model_map, refine,
-                                          solved_index)
+                                          solved_index, surface_depth)
 
 
 class ColourMatcher:
@@ -55,7 +55,7 @@ class ColourMatcher:
         d, j = KDTree(np.asarray(ref_position, np.float64)).query(world)
         near = d < self.params.anchor_distance_m
         self._keyframe = Keyframe(Keypoints(kp.pixels[ok][near], kp.descriptors[ok][near], kp.image), world[near],
-                                  np.asarray(ids)[j[near]], np.where(obs.valid, obs.vertex_map[..., 2], 0.0))
+                                  np.asarray(ids)[j[near]], surface_depth(obs.vertex_map, obs.valid))
 
     def matches(self, obs: CameraObservation, model: ModelView | None, field: WarpField | None,
                 T_previous: np.ndarray, T_camera_to_world: np.ndarray) -> AnchoredMatches | None:
@@ -118,7 +118,7 @@ class ColourMatcher:
         current = (obs.vertex_map, obs.valid, T_last_to_now, p)
         if model.color_map is None or model.vertex_map is None or not model.color_drawn.any():
             pairs = flow_pairs(last.color, obs.color, last.valid, obs.valid, p,
-                               np.where(last.valid, last.vertex_map[..., 2], 0.0))
+                               surface_depth(last.vertex_map, last.valid))
             return self._on_model(checked_pairs(*pairs, last.vertex_map, last.valid, *current), model, field,
                                   p.flow_weight)
         # Each drawn colour is its surfel's, whose centre lies up to a pixel off the pixel that
@@ -131,7 +131,7 @@ class ColourMatcher:
         grid = grid_pixels(drawn, p.flow_stride_px).astype(np.int64)
         centres = model.vertex_map[grid[:, 1], grid[:, 0]].astype(np.float64)
         pa = self.intrinsics.project(centres).astype(np.float32)
-        depth = np.where(drawn, model.vertex_map[..., 2], np.where(last.valid, last.vertex_map[..., 2], 0.0))
+        depth = np.where(drawn, model.vertex_map[..., 2], surface_depth(last.vertex_map, last.valid))
         pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa, p, depth)
         pb += mean_draw_offset(model.vertex_map, drawn, self.intrinsics)[grid[:, 1], grid[:, 0]]
         m = checked_points(pa[inside], pb[inside], centres[inside], np.ones(int(inside.sum()), bool), *current)

@@ -116,6 +116,11 @@ def detect(color: np.ndarray, valid: np.ndarray, params: FeatureParams) -> Keypo
     return Keypoints(pixels.astype(np.float32), desc, image)
 
 
+def surface_depth(vertex_map: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(H, W) depth in metres where `valid`, 0 elsewhere: the depth `refine` reads."""
+    return np.where(valid, vertex_map[..., 2], 0.0)
+
+
 def refine(previous_grey: np.ndarray | None, current_grey: np.ndarray | None, pa: np.ndarray, pb: np.ndarray,
            params: FeatureParams, previous_depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(pb moved to where pa's patch of the previous image lies in the current one, whether to
@@ -204,7 +209,7 @@ def match_frames(previous: Keypoints, current: Keypoints, previous_vertex: np.nd
     """Descriptor matches, checked in 3-D (checked_pairs)."""
     ia, ib = match_descriptors(previous, current, params)
     pb, keep = refine(previous.image, current.image, previous.pixels[ia], current.pixels[ib], params,
-                      np.where(previous_valid, previous_vertex[..., 2], 0.0))
+                      surface_depth(previous_vertex, previous_valid))
     pa, pb = previous.pixels[ia][keep], pb[keep]
     return checked_pairs(pa, pb, previous_vertex, previous_valid, current_vertex, current_valid,
                          T_previous_to_current, params)

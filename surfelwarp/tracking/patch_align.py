@@ -51,6 +51,17 @@ def _blend(image, r0, r1, c0, c1, fx, fy):
     return top * (1.0 - fy) + (image[r1, c0] * (1.0 - fx) + image[r1, c1] * fx) * fy
 
 
+@numba.njit(cache=True, inline="always")
+def _cell(x0, y0, h, w):
+    """Rows and columns of the 2x2 pixels from (x0, y0), the border replicated."""
+    return min(max(y0, 0), h - 1), min(max(y0 + 1, 0), h - 1), min(max(x0, 0), w - 1), min(max(x0 + 1, 0), w - 1)
+
+
+@numba.njit(cache=True, inline="always")
+def _nearest_value(image, x, y):
+    return image[int(round(min(max(y, 0.0), image.shape[0] - 1.0))), int(round(min(max(x, 0.0), image.shape[1] - 1.0)))]
+
+
 @numba.njit(cache=True)
 def _normalise(v, w, out):
     """out = (v - mean) / std, both weighted by w; returns std."""
@@ -112,19 +123,17 @@ def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window,
     T = np.empty(S)
     w = np.empty(S)
     SD = np.empty((S, 6))
-    zc = depth[int(round(min(max(ay, 0.0), depth.shape[0] - 1.0))), int(round(min(max(ax, 0.0), depth.shape[1] - 1.0)))]
+    zc = _nearest_value(depth, ax, ay)
     kept = total = 0.0
     for s in range(S):
         x, y = ax + ox[s], ay + oy[s]
-        x0, y0 = int(np.floor(x)), int(np.floor(y))
-        c0, c1 = min(max(x0, 0), wd - 1), min(max(x0 + 1, 0), wd - 1)
-        r0, r1 = min(max(y0, 0), h - 1), min(max(y0 + 1, 0), h - 1)
+        r0, r1, c0, c1 = _cell(int(np.floor(x)), int(np.floor(y)), h, wd)
         T[s] = _blend(previous, r0, r1, c0, c1, fx, fy)
         SD[s, 2] = _blend(gx, r0, r1, c0, c1, fx, fy)
         SD[s, 5] = _blend(gy, r0, r1, c0, c1, fx, fy)
         w[s] = window[s]
         if depth_tol_m > 0:
-            z = depth[int(round(min(max(y, 0.0), depth.shape[0] - 1.0))), int(round(min(max(x, 0.0), depth.shape[1] - 1.0)))]
+            z = _nearest_value(depth, x, y)
             if z <= 0 or abs(z - zc) >= depth_tol_m:
                 w[s] = 0.0
         kept += w[s]
@@ -183,9 +192,8 @@ def _iterate(current, w, Tn, SD, Hinv, affine, tx, ty, bx, by, ox, oy, iters, ma
         else:       # a shift: one set of bilinear weights for the whole patch
             fx, fy = tx - np.floor(tx), ty - np.floor(ty)
             for s in range(S):
-                x0, y0 = int(np.floor(tx + ox[s])), int(np.floor(ty + oy[s]))
-                I[s] = _blend(current, min(max(y0, 0), h - 1), min(max(y0 + 1, 0), h - 1), min(max(x0, 0), wd - 1),
-                              min(max(x0 + 1, 0), wd - 1), fx, fy)
+                r0, r1, c0, c1 = _cell(int(np.floor(tx + ox[s])), int(np.floor(ty + oy[s])), h, wd)
+                I[s] = _blend(current, r0, r1, c0, c1, fx, fy)
         _normalise(I, w, In)
         if affine:
             r[:] = 0.0
