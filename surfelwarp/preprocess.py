@@ -74,40 +74,61 @@ def bilateral_filter(depth_m: np.ndarray, params: PreprocessParams) -> np.ndarra
 
     Written out rather than cv2.bilateralFilter because OpenCV lets the zeros of missing
     pixels leak into their neighbours (up to ~1 mm), which bends normals at every hole.
-    The weight of pixel q at p equals that of p at q, so each pair's exponential is computed
-    once, for the offsets of one half-plane, and added to both ends.
     """
     radius = params.bilateral_diameter_px // 2
-    d = np.asarray(depth_m, np.float32)
+    d = np.ascontiguousarray(depth_m, np.float32)
     if radius < 1:
         return d.copy()
+    out = np.empty_like(d)
+    _bilateral(d, radius, np.float32(-0.5 / params.bilateral_sigma_space_px ** 2),
+               np.float32(-0.5 / params.bilateral_sigma_depth_m ** 2), out)
+    return out
+
+
+@numba.njit(cache=True, inline="always")
+def _exp(x):
+    """exp(x) in float32 for -20 <= x <= 0: exp(x / 32) by its Taylor series, squared five
+    times (relative error below 2e-6 for x > -3, float32 rounding squared; 4e-4 at -20, where
+    it weighs 2e-9). No branch and no libm call in the filter's loop: 20 ms against 26 for
+    libm's exp on a 640x480 frame all valid."""
+    y = x * np.float32(1 / 32)
+    e = np.float32(1) + y * (np.float32(1) + y * (np.float32(1 / 2) + y * (np.float32(1 / 6) + y * (
+        np.float32(1 / 24) + y * (np.float32(1 / 120) + y * np.float32(1 / 720))))))
+    e *= e
+    e *= e
+    e *= e
+    e *= e
+    return e * e
+
+
+@numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
+def _bilateral(d, radius, inv_space, inv_depth, out):
+    """Per valid pixel, the weighted mean of the valid pixels in its window, a row per thread.
+    Only valid pixels cost: two fingers (a tenth of the image) 1.2 ms against 28 ms for the
+    same sums as whole-image numpy passes over each offset; a frame all valid 20 against 28."""
     h, w = d.shape
-    valid = (d > 0).astype(np.float32)
-    total = d * valid
-    weight_sum = valid.copy()
-    inv_space = -0.5 / params.bilateral_sigma_space_px ** 2
-    inv_depth = np.float32(-0.5 / params.bilateral_sigma_depth_m ** 2)
-    half = [(dy, dx) for dy in range(radius + 1) for dx in range(-radius, radius + 1) if dy > 0 or dx > 0]
-    for dy, dx in half:
-        # p over rows/cols where q = p + (dy, dx) is inside the image.
-        p_rows, q_rows = slice(0, h - dy), slice(dy, h)
-        p_cols, q_cols = slice(max(0, -dx), min(w, w - dx)), slice(max(0, dx), min(w, w + dx))
-        a, b = d[p_rows, p_cols], d[q_rows, q_cols]
-        e = b - a
-        np.square(e, out=e)
-        e *= inv_depth
-        e += np.float32(inv_space * (dx * dx + dy * dy))
-        np.exp(e, out=e)
-        e *= valid[p_rows, p_cols]
-        e *= valid[q_rows, q_cols]
-        weight_sum[p_rows, p_cols] += e
-        weight_sum[q_rows, q_cols] += e
-        total[q_rows, q_cols] += e * a
-        e *= b
-        total[p_rows, p_cols] += e
-    np.divide(total, np.maximum(weight_sum, np.float32(1e-12)), out=total)
-    total *= valid
-    return total
+    spatial = np.empty((2 * radius + 1, 2 * radius + 1), np.float32)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            spatial[dy + radius, dx + radius] = np.exp(inv_space * np.float32(dx * dx + dy * dy))
+    for row in numba.prange(h):
+        y = np.int64(row)            # a prange index is unsigned: -y would wrap
+        for x in range(w):
+            a = d[y, x]
+            if not a > 0:
+                out[y, x] = 0
+                continue
+            total = np.float32(0)
+            weight_sum = np.float32(0)
+            for dy in range(max(-radius, -y), min(radius, h - 1 - y) + 1):
+                for dx in range(max(-radius, -x), min(radius, w - 1 - x) + 1):
+                    b = d[y + dy, x + dx]
+                    e = b - a
+                    weight = _exp(max(e * e * inv_depth, np.float32(-20))) * spatial[dy + radius, dx + radius]
+                    weight = weight if b > 0 else np.float32(0)
+                    weight_sum += weight
+                    total += weight * b
+            out[y, x] = total / weight_sum
 
 
 def normal_map(vertex_map: np.ndarray, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -132,3 +132,11 @@ def test_compiled_normal_map_equals_the_numpy_reference():
     ref_n, ref_valid = _normal_map_numpy(vertex, depth)
     assert valid.sum() > 1000 and np.array_equal(valid, ref_valid)
     assert np.abs(normals - ref_n).max() < 1e-6
+
+
+def test_the_filter_s_exp_is_exp_to_float32_precision():
+    from surfelwarp.preprocess import _exp
+    x = np.linspace(-20, 0, 4001).astype(np.float32)
+    got = np.array([_exp(v) for v in x], np.float64)
+    error = np.abs(got / np.exp(x.astype(np.float64)) - 1)
+    assert error[x > -3].max() < 2e-6 and error.max() < 5e-4, (error[x > -3].max(), error.max())
