@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from surfelwarp.geometry.se3 import transform_points
+from surfelwarp.tracking.descriptors import nearest_both_ways
 from surfelwarp.tracking.patch_align import FAILED, align
 
 
@@ -140,19 +141,18 @@ def match_descriptors(a: Keypoints, b: Keypoints, params: FeatureParams) -> tupl
     """Index pairs (ia, ib) that pass the ratio test both ways and pick each other."""
     if a.descriptors is None or b.descriptors is None or len(a.pixels) < 2 or len(b.pixels) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    # SIFT: approximate nearest neighbours (FLANN's k-d trees), 5x faster than brute force on
-    # 1600 features a frame; ORB's binary descriptors: brute force Hamming.
-    matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 32}) if params.detector == "sift" \
-        else cv2.BFMatcher(cv2.NORM_HAMMING)
+    if params.detector == "sift":
+        ab, ba = nearest_both_ways(a.descriptors, b.descriptors, params.ratio)
+    else:   # ORB's binary descriptors: brute force Hamming
+        matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
 
-    def best(x, y):
-        pairs = matcher.knnMatch(x, y, k=2)
-        idx = np.array([m[0].trainIdx if len(m) == 2 else -1 for m in pairs], np.int64)
-        d = np.array([(m[0].distance, m[1].distance) if len(m) == 2 else (1.0, 1.0) for m in pairs], np.float64)
-        ok = (idx >= 0) & (d[:, 0] < params.ratio * d[:, 1])
-        return np.where(ok, idx, -1)
+        def best(x, y):
+            pairs = matcher.knnMatch(x, y, k=2)
+            idx = np.array([m[0].trainIdx if len(m) == 2 else -1 for m in pairs], np.int64)
+            d = np.array([(m[0].distance, m[1].distance) if len(m) == 2 else (1.0, 1.0) for m in pairs], np.float64)
+            return np.where((idx >= 0) & (d[:, 0] < params.ratio * d[:, 1]), idx, -1)
 
-    ab, ba = best(a.descriptors, b.descriptors), best(b.descriptors, a.descriptors)
+        ab, ba = best(a.descriptors, b.descriptors), best(b.descriptors, a.descriptors)
     ia = np.flatnonzero(ab >= 0)
     ib = ab[ia]
     mutual = ba[ib] == ia
@@ -170,8 +170,9 @@ def lift(pixels: np.ndarray, vertex_map: np.ndarray, valid: np.ndarray,
     y = np.clip(np.asarray(pixels[:, 1], np.float64), 0, h - 1.0001)
     x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    v = vertex_map.astype(np.float64)
-    corners = [v[y0, x0], v[y0, x0 + 1], v[y0 + 1, x0], v[y0 + 1, x0 + 1]]
+    v = vertex_map      # the four corners gathered, then widened: not the whole map (2 ms a call)
+    corners = [v[y0, x0].astype(np.float64), v[y0, x0 + 1].astype(np.float64), v[y0 + 1, x0].astype(np.float64),
+               v[y0 + 1, x0 + 1].astype(np.float64)]
     z = np.stack([c[:, 2] for c in corners], -1)
     smooth = valid[y0, x0] & valid[y0, x0 + 1] & valid[y0 + 1, x0] & valid[y0 + 1, x0 + 1] & \
         (z.max(axis=1) - z.min(axis=1) < edge_m)
@@ -252,9 +253,13 @@ def flow_at(previous_color: np.ndarray, current_color: np.ndarray, window: np.nd
 
 def mean_draw_offset(vertex_map: np.ndarray, drawn: np.ndarray, intrinsics, window_px: int = 9) -> np.ndarray:
     """(H, W, 2) float32: the mean, over a window_px box, of pixel minus the projection of the
-    point drawn there (x, y), where `drawn`."""
+    point drawn there (x, y), where `drawn`; computed on the box around the drawn pixels (the
+    rest is zero)."""
     h, w = drawn.shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    out = np.zeros((h, w, 2), np.float32)
+    rows, cols = bounding_box(drawn, window_px // 2 + 1)
+    drawn, vertex_map = drawn[rows, cols], vertex_map[rows, cols]
+    v, u = np.mgrid[rows, cols].astype(np.float32)
     z = np.where(drawn, vertex_map[..., 2], 1.0)
     offset = np.stack([u - (intrinsics.fx * vertex_map[..., 0] / z + intrinsics.cx),
                        v - (intrinsics.fy * vertex_map[..., 1] / z + intrinsics.cy)], -1)
@@ -263,7 +268,8 @@ def mean_draw_offset(vertex_map: np.ndarray, drawn: np.ndarray, intrinsics, wind
     box = (window_px, window_px)
     count = cv2.boxFilter(weight, -1, box, normalize=False)
     total = cv2.boxFilter(offset, -1, box, normalize=False)
-    return total / np.maximum(count, 1.0)[..., None]
+    out[rows, cols] = total / np.maximum(count, 1.0)[..., None]
+    return out
 
 
 def flow_pairs(previous_color: np.ndarray, current_color: np.ndarray, previous_valid: np.ndarray,

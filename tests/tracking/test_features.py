@@ -11,6 +11,7 @@ from surfelwarp.data_tools.texture import albedo
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.tracking.features import (FeatureParams, checked_pairs, detect, flow_pairs, grey, locally_rigid,
                                           match_frames, refine)
+from surfelwarp.tracking.descriptors import nearest_both_ways
 
 INTR = Intrinsics(500.0, 500.0, 319.5, 239.5, 640, 480)
 
@@ -62,6 +63,29 @@ def test_matches_on_a_known_warp_are_correct(detector):
     # correct: within 4 px (ORB keypoints of coarse pyramid levels sit a few pixels off); a wrong
     # match lands tens of pixels away
     assert np.mean(error < 4.0) >= 0.95, (len(m), np.mean(error < 4.0), np.percentile(error, [50, 90, 99]))
+
+
+def _nearest_reference(a, b, ratio):
+    """Brute force in float64, one direction: the nearest row of b, or -1 failing the ratio test."""
+    d = np.sqrt(((a[:, None, :].astype(np.float64) - b[None, :, :]) ** 2).sum(-1))
+    two = np.sort(d, axis=1)[:, :2]
+    return np.where(two[:, 0] < ratio * two[:, 1], np.argmin(d, axis=1), -1)
+
+
+def test_nearest_both_ways_is_the_exact_nearest_with_the_ratio_test():
+    rng = np.random.default_rng(5)
+    # SIFT-like: non-negative, some rows near copies of others (ambiguous or clear matches).
+    a = rng.integers(0, 60, (300, 128)).astype(np.float32)
+    b = np.concatenate([a[:150] + rng.normal(0, 3, (150, 128)), rng.integers(0, 60, (120, 128))]).astype(np.float32)
+    b[10] = b[11] + 0.5                                 # two near-equal candidates: fails the ratio test
+    ab, ba = nearest_both_ways(a, b, 0.8)
+    np.testing.assert_array_equal(ab, _nearest_reference(a, b, 0.8))
+    np.testing.assert_array_equal(ba, _nearest_reference(b, a, 0.8))
+    assert (ab[:150] == np.arange(150)).sum() >= 145 and ab[11] == -1 and 100 <= (ab >= 0).sum() < 300
+    # One row on the other side has no second nearest (inf): it passes (match_descriptors asks
+    # for two features a side).
+    one_a, one_b = nearest_both_ways(a[:1], b, 0.8)
+    assert one_a.tolist() == [0] and (one_b == 0).all()
 
 
 def test_dense_flow_on_a_known_warp_is_correct():
