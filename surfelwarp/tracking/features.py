@@ -170,7 +170,7 @@ def lift(pixels: np.ndarray, vertex_map: np.ndarray, valid: np.ndarray,
     y = np.clip(np.asarray(pixels[:, 1], np.float64), 0, h - 1.0001)
     x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    v = vertex_map      # the four corners gathered, then widened: not the whole map (2 ms a call)
+    v = vertex_map      # the four corners gathered, then widened (not the whole map)
     corners = [v[y0, x0].astype(np.float64), v[y0, x0 + 1].astype(np.float64), v[y0 + 1, x0].astype(np.float64),
                v[y0 + 1, x0 + 1].astype(np.float64)]
     z = np.stack([c[:, 2] for c in corners], -1)
