@@ -72,8 +72,8 @@ def render_index_map(positions: np.ndarray, normals: np.ndarray, intrinsics: Int
 
 def _rows(positions: np.ndarray, intr: Intrinsics, near_m: float, far_m: float) -> tuple[int, int]:
     """(first, end) of the rows the points in (near_m, far_m) land on, a row more each side for
-    the shader's float32 rounding: the scatter reads back and clears only those (a model in a
-    third of the view: 4.5 -> ~1.5 ms of the fusion map's 8)."""
+    the shader's float32 rounding: the scatter reads back and clears only those (a model on a
+    third of the rows: render_index_map 8.4 -> 4.5 ms at 4x)."""
     z = positions[:, 2]
     ok = (z > near_m) & (z < far_m)
     t = positions[ok, 1] / z[ok]
