@@ -16,6 +16,7 @@ import scipy.sparse as sp
 from surfelwarp.geometry.dual_quaternion import _components
 from surfelwarp.geometry.se3 import skew
 from surfelwarp.tracking.blend_jacobian import residual_row, residual_rows
+from surfelwarp.tracking.coarse import CoarseSpace
 
 
 class BlockPattern:
@@ -339,6 +340,7 @@ class NormalEquations:
     upper: np.ndarray | None = None     # (n_upper, 6, 6) the pattern's upper blocks (None: zero)
     gradient: np.ndarray | None = None  # (M, 6)
     border: Border | None = None
+    coarse: CoarseSpace | None = None   # the PCG preconditioner's cells (coarse.py), if it uses them
 
     def blocks(self) -> np.ndarray:
         """The upper blocks (n_upper, 6, 6) to add into in place, and with them a gradient
