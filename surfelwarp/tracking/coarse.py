@@ -10,8 +10,8 @@ blend_jacobian.py; exactly, as exp's left Jacobian V has V [omega]x = R - I):
 P_j = [[I, 0], [-[d]x, I]]. The coarse matrix is factored by sparse LU (SuperLU, as solve_step)
 and the factors are applied in compiled code inside the PCG.
 
-Cells of 6 node radii on 7-Scenes (6.7k nodes, 510 cells): 64 instead of 250-290 iterations for
-the anchors' trial step, 17-24 instead of 40-66 for the bordered steps; ~18 ms to factor a
+Cells of 6 node radii on 7-Scenes (6.7k nodes, 510 cells): 64-72 instead of 200-290 iterations
+for the anchors' trial step, 17-24 instead of 39-66 for the bordered steps; ~18 ms to factor a
 system, 0.25 ms a correction against 0.7 ms for a product with the system.
 """
 from __future__ import annotations
