@@ -68,16 +68,21 @@ def coarse_space(nodes: np.ndarray, free: np.ndarray, lo: np.ndarray, hi: np.nda
 class CoarseFactor:
     """The coarse system's sparse LU factors as the compiled PCG reads them:
     Pr A Pc = L U, CSC arrays with the diagonals apart."""
+    space: CoarseSpace
     L: tuple
     U: tuple
     perm_r: np.ndarray
     perm_c: np.ndarray
 
     def arrays(self) -> tuple:
-        return self.L + self.U + (self.perm_r, self.perm_c)
+        """What the compiled PCG's correction takes (its coarse argument)."""
+        return (self.space.cell, self.space.offset, self.space.num_cells) + self.L + self.U + (self.perm_r,
+                                                                                                self.perm_c)
 
 
-NO_FACTOR_ARRAYS = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0)) * 2 + \
+# The coarse argument of a PCG without cells.
+NO_COARSE = (np.zeros(0, np.int64), np.zeros((0, 3)), 0) + \
+    (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0)) * 2 + \
     (np.zeros(0, np.int64), np.zeros(0, np.int64))
 
 
@@ -115,7 +120,7 @@ def factor(space: CoarseSpace, upper: np.ndarray, lo: np.ndarray, hi: np.ndarray
         T.setdiag(0.0)
         T.eliminate_zeros()
         parts.append((T.indptr.astype(np.int64), T.indices.astype(np.int64), T.data, 1.0 / diag))
-    return CoarseFactor(parts[0], parts[1], lu.perm_r.astype(np.int64), lu.perm_c.astype(np.int64))
+    return CoarseFactor(space, parts[0], parts[1], lu.perm_r.astype(np.int64), lu.perm_c.astype(np.int64))
 
 
 @numba.njit(cache=True, nogil=True)

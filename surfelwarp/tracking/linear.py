@@ -2,7 +2,7 @@
 
 By conjugate gradients with a block-Jacobi (per-node 6x6) preconditioner, as the GPU solver of
 Dou et al. that SurfelWarp follows, plus a coarse level when the system has cells (coarse.py:
-cells of nodes moving rigidly, solved exactly; 7-Scenes frames take ~130 iterations instead of
+cells of nodes moving rigidly, solved exactly; 7-Scenes frames take ~105 iterations instead of
 ~380), compiled and run on the system's upper blocks as they are (_pcg; solve_step_pcg is the
 block-Jacobi form in numpy on an assembled matrix), falling back to sparse LU (SuperLU) when it
 does not reach its tolerance; with rest anchors the system is bordered by one
@@ -19,12 +19,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from surfelwarp.tracking.assembly import NormalEquations
-from surfelwarp.tracking.coarse import NO_FACTOR_ARRAYS, correct, factor
+from surfelwarp.tracking.coarse import NO_COARSE, correct, factor
 
 LINEAR_SOLVERS = ("pcg", "direct")
-
-
-_NO_COARSE = (np.zeros(0, np.int64), np.zeros((0, 3)), 0) + NO_FACTOR_ARRAYS
 
 
 class Bordered:
@@ -110,11 +107,11 @@ def _pcg_on_blocks(system: NormalEquations, damping: float, rtol: float, max_ite
     if border is None:
         Minv[m] = 0.0
     upper = np.ascontiguousarray(system.upper)
-    coarse = _NO_COARSE
+    coarse = NO_COARSE
     if system.coarse is not None and system.coarse.num_cells > 0:
         f = factor(system.coarse, upper, pattern.lo, pattern.hi, mu, B if border is not None else None, C)
         if f is not None:
-            coarse = (system.coarse.cell, system.coarse.offset, system.coarse.num_cells) + f.arrays()
+            coarse = f.arrays()
     x = np.zeros((m + 1, 6))
     iterations = _pcg(upper, pattern.indptr_upper, pattern.hi, free, Minv, coarse, B, C, border is not None, mu, g,
                       rtol, max_iterations, x)

@@ -105,7 +105,7 @@ def test_correction_equals_the_dense_coarse_solve(held, bordered):
         r[m] = 0
     want = P @ np.linalg.solve(P.T @ A @ P, P.T @ r.reshape(-1)[: len(A)])
     z = np.zeros((m + 1, 6))
-    correct(space.cell, space.offset, space.num_cells, *f.arrays(), r, z)
+    correct(*f.arrays(), r, z)
     assert np.abs(z.reshape(-1)[: len(A)] - want).max() < 1e-9 * np.abs(want).max()
     assert not np.any(z[:m][~s.free])
 
