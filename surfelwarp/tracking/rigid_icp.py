@@ -246,6 +246,30 @@ def _median_residual(level: _Level, T: np.ndarray, T_world_to_model: np.ndarray,
     a = np.abs(r.astype(np.float64))
     if w is None:
         return float(np.median(a))
-    order = np.argsort(a)
-    cumulative = np.cumsum(w[order])
-    return float(a[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
+    return _weighted_median(a, w.astype(np.float64))
+
+
+@numba.njit(cache=True, nogil=True)
+def _weighted_median(a, w):
+    """The smallest a[i] at which the weights of it and all smaller values reach half the total
+    (what sorting gives). In linear time: the values' histogram finds the bin holding the
+    median, and only that bin is sorted (argsort of a room's 300k pairs took ~18 ms)."""
+    bins = 4096
+    lo, hi = a.min(), a.max()
+    scale = bins / (hi - lo) if hi > lo else 0.0
+    weight = np.zeros(bins + 1)
+    for i in range(len(a)):
+        weight[int((a[i] - lo) * scale)] += w[i]
+    half = 0.5 * weight.sum()
+    below = 0.0
+    b = 0
+    while b < bins and below + weight[b] < half:
+        below += weight[b]
+        b += 1
+    inside = np.array([i for i in range(len(a)) if int((a[i] - lo) * scale) == b])
+    order = inside[np.argsort(a[inside])]
+    for i in order:
+        below += w[i]
+        if below >= half:
+            return a[i]
+    return a[order[-1]]

@@ -1,11 +1,12 @@
 """The free-space term (tracking/free_space.py, tracking/terms/free_space.py): model points where the camera saw through them."""
+import cv2
 import numpy as np
 
 from surfelwarp.deform.warp_field import WarpField, WarpFieldParams, apply_update, skin, warp
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import se3_exp
 from surfelwarp.tracking.blend_jacobian import data_jacobian
-from surfelwarp.tracking.free_space import FreeSpace, SilhouetteParams
+from surfelwarp.tracking.free_space import FreeSpace, SilhouetteParams, _ball_widths, _chamfer_of
 from surfelwarp.tracking.gauss_newton import NonRigidParams, solve_nonrigid
 
 INTR = Intrinsics(300.0, 300.0, 159.5, 119.5, 320, 240)
@@ -158,9 +159,9 @@ def test_the_solve_pulls_a_sheet_back_under_its_silhouette():
             assert res.alignment.unsupported_fraction < 0.05
 
 
-def test_windowed_distance_transforms_equal_the_whole_images():
-    """Each layer's transform runs on a window around its points; the residuals and gradients
-    must be those of transforms over the whole image (a scene of steps, holes and a far wall)."""
+def steps_scene_and_points():
+    """A scene of steps, holes and a far wall, and clusters of points in it, one cluster far
+    from any surface: (depth, (3, N) points)."""
     rng = np.random.default_rng(5)
     depth = np.full((INTR.height, INTR.width), 2.5, np.float32)
     for _ in range(12):
@@ -175,16 +176,61 @@ def test_windowed_distance_transforms_equal_the_whole_images():
         cu, cv, z = rng.uniform(15, INTR.width - 16), rng.uniform(15, INTR.height - 16), rng.uniform(0.5, 2.6)
         clusters.append(at_pixel(cu + rng.uniform(-15, 15, 40), cv + rng.uniform(-15, 15, 40), z))
     clusters.append(at_pixel(rng.uniform(270, 290, 40), rng.uniform(110, 130, 40), 1.01))  # far from any surface
-    points = np.concatenate(clusters, axis=1)
-    windowed = FreeSpace(depth, INTR, np.eye(4))
-    whole = FreeSpace(depth, INTR, np.eye(4))
+    return depth, np.concatenate(clusters, axis=1)
+
+
+def whole_image_transforms(depth):
+    """The reference: a FreeSpace whose every layer's transform covers the whole image."""
+    whole = FreeSpace(depth, INTR, np.eye(4), SilhouetteParams(search_px=0))
     h, w = depth.shape
     for layer in range(200):
         whole._layers[layer] = (0, h, 0, w, whole._transform(layer, 0, h, 0, w))
+    return whole
+
+
+def test_windowed_distance_transforms_equal_the_whole_images():
+    """Each layer's transform runs on a window around its points; the residuals and gradients
+    must be those of transforms over the whole image."""
+    depth, points = steps_scene_and_points()
+    windowed = FreeSpace(depth, INTR, np.eye(4), SilhouetteParams(search_px=0))
     r1, g1 = windowed.residuals(points)
-    r2, g2 = whole.residuals(points)
+    r2, g2 = whole_image_transforms(depth).residuals(points)
     assert (r2 > 0).sum() > 300 and r2.max() > 0.1
     # Equal but for float32 rounding of chamfer sums taken along other paths of the same length.
     np.testing.assert_allclose(r1, r2, rtol=1e-6, atol=1e-12)
     np.testing.assert_allclose(g1, g2, rtol=1e-6, atol=1e-5)
+    h, w = depth.shape
     assert any(box[:4] != (0, h, 0, w) for box in windowed._layers.values())   # windows were used
+
+
+def test_the_search_about_each_point_equals_the_whole_images_transforms():
+    """Distances up to search_px are searched for about each point; the residuals and gradients
+    must be the transforms', and farther points must fall back to the transforms."""
+    depth, points = steps_scene_and_points()
+    searched = FreeSpace(depth, INTR, np.eye(4))
+    r1, g1 = searched.residuals(points)
+    r2, g2 = whole_image_transforms(depth).residuals(points)
+    assert (r2 > 0).sum() > 300 and r2.max() > 0.1
+    # The closed-form chamfer distance differs from cv2's sums by float32 rounding (5e-5 px).
+    np.testing.assert_allclose(r1, r2, rtol=0, atol=2e-7)
+    np.testing.assert_allclose(g1, g2, rtol=0, atol=2e-5)
+    far = r2 > 2 * P.search_px * 1.01 / INTR.fx      # beyond the search at the far cluster's depth
+    assert far.sum() > 10 and len(searched._layers) > 0 and len(searched._layers) < 40
+    # Every layer searched alone: the nearest-depth memo fills the same whichever layer asked first.
+    again = FreeSpace(depth, INTR, np.eye(4))
+    np.testing.assert_allclose(again.residuals(points[:, ::-1])[0][::-1], r1, rtol=0, atol=1e-12)
+
+
+def test_the_chamfer_distance_in_closed_form_is_cv2s():
+    image = np.ones((101, 101), np.uint8)
+    image[50, 50] = 0
+    reference = cv2.distanceTransform(image, cv2.DIST_L2, cv2.DIST_MASK_5)
+    dy, dx = np.abs(np.mgrid[-50:51, -50:51])
+    np.testing.assert_allclose(_chamfer_of(dy, dx), reference, rtol=0, atol=1e-4)
+    # A knight's move, five steps, five diagonals, and (3, 4) as a knight's move and two diagonals.
+    np.testing.assert_allclose(_chamfer_of(np.array([1, 0, 5, 3]), np.array([2, 5, 5, 4])),
+                               [2.1969, 5, 7, 2.1969 + 2 * 1.4], rtol=1e-6)
+    # The occluder test's ball: its rows' half-widths reach exactly the pixels within radius.
+    widths = _ball_widths(24)
+    assert len(widths) == 49 and widths[24] == 24 and widths[0] == 0
+    assert _chamfer_of(np.array(8), np.array(widths[24 + 8])) <= 24 < _chamfer_of(np.array(8), np.array(widths[24 + 8] + 1))

@@ -12,7 +12,7 @@ from surfelwarp.tracking.association import associate
 from surfelwarp.tracking.blend_jacobian import data_jacobian, data_residuals
 from surfelwarp.tracking.free_space import SilhouetteParams
 from surfelwarp.tracking.gauss_newton import NonRigidParams, free_nodes, normal_equations, solve_nonrigid
-from surfelwarp.tracking.linear import restrict, solve_step
+from surfelwarp.tracking.linear import _cholesky_inverses, restrict, solve_step
 from surfelwarp.tracking.terms import robust as _robust
 from surfelwarp.tracking.terms.regulariser import reg_jacobian, reg_residuals
 
@@ -454,6 +454,19 @@ def test_pcg_solve_matches_the_direct_solve_and_falls_back(problem):
         assert res.energy == pytest.approx(res_d.energy, rel=1e-4)
         assert np.abs(diff).max() < 1e-5
     assert res_f.energies == pytest.approx(res_d.energies, rel=1e-9)
+
+
+def test_the_block_jacobi_inverses_are_numpys():
+    rng = np.random.default_rng(2)
+    J = rng.normal(size=(50, 9, 6)) * np.geomspace(1e-3, 1e3, 6)      # badly scaled, as twists are
+    blocks = np.einsum("nki,nkj->nij", J, J) + 1e-6 * np.eye(6)
+    out = np.empty_like(blocks)
+    assert _cholesky_inverses(blocks, out)
+    np.testing.assert_allclose(out, np.linalg.inv(blocks), rtol=1e-7, atol=0)
+    np.testing.assert_allclose(np.einsum("nij,njk->nik", out, blocks), np.broadcast_to(np.eye(6), blocks.shape),
+                               atol=1e-7)
+    blocks[7, 2, 2] = -1.0      # not positive definite: numpy's inverse takes over
+    assert not _cholesky_inverses(blocks, out)
 
 
 def test_rejects_unknown_linear_solver(problem):

@@ -7,7 +7,7 @@ from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import invert, se3_exp, so3_log
 from surfelwarp.io.sequence import open_sequence
 from surfelwarp.preprocess import PreprocessParams, preprocess
-from surfelwarp.tracking.rigid_icp import RigidParams, halved, rigid_icp
+from surfelwarp.tracking.rigid_icp import RigidParams, _weighted_median, halved, rigid_icp
 
 from conftest import shared_data
 
@@ -199,3 +199,16 @@ def test_compiled_pairing_equals_the_numpy_reference(synthetic):
                 assert (a is None) == (b is None)
                 if a is not None:
                     assert np.allclose(a, b, rtol=0, atol=2e-6)
+
+
+def test_the_weighted_median_is_sortings():
+    rng = np.random.default_rng(3)
+    for a, w in [(rng.exponential(0.01, 300_000), rng.uniform(0, 1, 300_000)),
+                 (np.round(rng.uniform(0, 0.02, 5000), 4), rng.uniform(0, 1, 5000)),     # ties
+                 (np.r_[np.zeros(900), rng.uniform(0, 1, 100)], np.ones(1000)),        # one value holds the median
+                 (np.full(7, 0.3), np.ones(7)), (np.array([0.2, 0.1]), np.array([0.0, 0.0]))]:
+        order = np.argsort(a, kind="stable")
+        cumulative = np.cumsum(w[order])
+        expected = a[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])]
+        assert _weighted_median(a, w) == expected
+    assert _weighted_median(np.array([1.0, 2.0, 3.0]), np.array([1.0, 1.0, 5.0])) == 3.0
