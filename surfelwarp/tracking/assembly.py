@@ -213,20 +213,43 @@ def point_blocks(pattern, sel, b, signed, points, normals, D, r, w):
     products of each pair's 8-vector derivative are summed into its node pairs' slots as they are
     formed. On tube-wall (120k pairs) 13 ms instead of ~47 ms a call."""
     A = np.zeros((pattern.n_upper, 36))
+    e = _sums_into(pattern, sel, b, signed, points, normals, r, w, _EVERY_SLOT, A)
+    return _blocks_from_sums(pattern.lo, pattern.hi, D, A, e)
+
+
+def sparse_point_blocks(pattern, sel, b, signed, points, normals, D, r, w):
+    """point_blocks on the node pairs the surfels `sel` touch alone: (their slots, their blocks
+    (len(slots), 6, 6), the gradient). For the sparse terms (features, free space): on a room
+    they touch a few % of ~50k pairs, and pattern-sized arrays (zeroed, sandwiched, added:
+    ~12 ms a call on 7-Scenes) cost them more than their sums."""
+    touched = np.zeros(pattern.n_upper, bool)
+    touched[pattern.slots[np.asarray(sel, np.int64)]] = True
+    slots = np.flatnonzero(touched)
+    compact = np.full(pattern.n_upper, -1, np.int64)
+    compact[slots] = np.arange(len(slots))
+    A = np.zeros((len(slots), 36))
+    e = _sums_into(pattern, sel, b, signed, points, normals, r, w, compact, A)
+    return (slots, *_blocks_from_sums(pattern.lo[slots], pattern.hi[slots], D, A, e))
+
+
+_EVERY_SLOT = np.zeros(0, np.int64)     # _point_sums' slot map meaning "as they are"
+
+
+def _sums_into(pattern, sel, b, signed, points, normals, r, w, compact, A):
     e = np.zeros((pattern.num_nodes, 8))
     _point_sums(np.ascontiguousarray(sel, np.int64), np.ascontiguousarray(b, np.float64),
                 np.ascontiguousarray(signed, np.float64), np.ascontiguousarray(points, np.float64),
                 np.ascontiguousarray(normals, np.float64), np.ascontiguousarray(r, np.float64),
                 np.ascontiguousarray(w, np.float64), pattern.knn, pattern.slots, pattern.double,
-                pattern.pair_s, pattern.pair_t, A, e)
-    return _blocks_from_sums(pattern, D, A, e)
+                pattern.pair_s, pattern.pair_t, compact, A, e)
+    return e
 
 
-def _blocks_from_sums(pattern, D, A, e):
-    """Blocks D_lo A D_hi^T of the summed symmetric 8x8 products A (n_upper, 36) and the
-    gradient D e: compiled, as numpy's batched 6x8x8 products cost as much as the sums."""
-    blocks = np.empty((pattern.n_upper, 6, 6))
-    _sandwich(np.ascontiguousarray(D, np.float64), pattern.lo, pattern.hi, A, _SYM8.reshape(8, 8), blocks)
+def _blocks_from_sums(lo, hi, D, A, e):
+    """Blocks D_lo A D_hi^T of the summed symmetric 8x8 products A (one row per pair lo, hi)
+    and the gradient D e: compiled, as numpy's batched 6x8x8 products cost as much as the sums."""
+    blocks = np.empty((len(lo), 6, 6))
+    _sandwich(np.ascontiguousarray(D, np.float64), lo, hi, A, _SYM8.reshape(8, 8), blocks)
     return blocks, np.einsum("nij,nj->ni", D, e)
 
 
@@ -250,7 +273,9 @@ def _sandwich(D, lo, hi, A, sym, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _point_sums(sel, b, signed, points, normals, r, w, knn, slots, double, pair_s, pair_t, A, e):
+def _point_sums(sel, b, signed, points, normals, r, w, knn, slots, double, pair_s, pair_t, compact, A, e):
+    """A[slot] and e[node] summed over the surfels sel; `compact` maps slots to rows of A
+    (empty: the slots are the rows)."""
     rows = np.empty(8)
     Q = np.empty(36)
     k = knn.shape[1]
@@ -268,6 +293,8 @@ def _point_sums(sel, b, signed, points, normals, r, w, knn, slots, double, pair_
             if double[i, p]:
                 coef *= 2.0
             slot = slots[i, p]
+            if len(compact):
+                slot = compact[slot]
             for q in range(36):
                 A[slot, q] += coef * Q[q]
         wr = w[c] * r[c]
@@ -305,7 +332,7 @@ def point_blocks_reference(pattern, sel, b, signed, points, normals, D, r, w):
         Kt = sp.csc_matrix((sg.reshape(-1), np.take(pattern.knn, idx, axis=0).reshape(-1), np.arange(c + 1) * k),
                            shape=(pattern.num_nodes, c))
         e += Kt @ ((wc * r[part])[:, None] * rows)
-    return _blocks_from_sums(pattern, D, A, e)
+    return _blocks_from_sums(pattern.lo, pattern.hi, D, A, e)
 
 
 def dense_point_blocks(pattern, J, r, w):
@@ -351,12 +378,16 @@ class NormalEquations:
             self.gradient = np.zeros((self.pattern.num_nodes, 6))
         return self.upper
 
-    def add(self, gradient: np.ndarray, upper: np.ndarray | None = None, diagonal: np.ndarray | None = None) -> None:
-        """Add a term's gradient (M, 6) and its blocks: on the whole pattern (n_upper, 6, 6) or
-        on the node diagonal only (M, 6, 6). The first term's arrays are taken over, not copied:
-        on a room the pattern holds ~10^5 blocks, a pass over them costs a few % of a frame."""
+    def add(self, gradient: np.ndarray, upper: np.ndarray | None = None, diagonal: np.ndarray | None = None,
+            slots: np.ndarray | None = None) -> None:
+        """Add a term's gradient (M, 6) and its blocks: on the whole pattern (n_upper, 6, 6), on
+        the pattern's `slots` only (len(slots), 6, 6; distinct slots) or on the node diagonal
+        only (M, 6, 6). The first term's arrays are taken over, not copied: on a room the
+        pattern holds ~10^5 blocks, a pass over them costs a few % of a frame."""
         self.gradient = gradient if self.gradient is None else self.gradient + gradient
-        if upper is not None:
+        if upper is not None and slots is not None:
+            self.blocks()[slots] += upper
+        elif upper is not None:
             self.upper = upper if self.upper is None else self.upper + upper
         if diagonal is not None:
             if self.upper is None:

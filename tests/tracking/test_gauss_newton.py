@@ -384,18 +384,29 @@ def test_block_pattern_is_the_sparsity_of_the_normal_equations(problem):
     assert np.array_equal(pattern.keys(pattern.hi[:5], pattern.lo[:5] + m), -np.ones(5))   # absent pairs
 
 
-@pytest.mark.parametrize("assembly", ["point_blocks", "point_blocks_reference"])
+def _sparse_as_dense(pattern, *args):
+    """sparse_point_blocks' blocks put into the whole pattern's, through NormalEquations.add."""
+    from surfelwarp.tracking.assembly import NormalEquations, sparse_point_blocks
+    slots, blocks, g = sparse_point_blocks(pattern, *args)
+    assert len(np.unique(slots)) == len(slots) < pattern.n_upper       # only the pairs touched
+    system = NormalEquations(pattern, np.ones(pattern.num_nodes, bool), args[-3])
+    system.add(g, upper=blocks, slots=slots)
+    return system.upper, system.gradient
+
+
+@pytest.mark.parametrize("assembly", ["point_blocks", "point_blocks_reference", "sparse"])
 def test_factored_normal_equations_equal_the_generic_ones(problem, assembly):
     from surfelwarp.geometry.dual_quaternion import _components, dq_blend_indexed
     from surfelwarp.tracking import assembly as assembly_module
     from surfelwarp.tracking.assembly import BlockPattern
-    point_blocks = getattr(assembly_module, assembly)     # compiled, and its numpy reference
+    # compiled, its numpy reference, and the compiled one on the touched pairs alone
+    point_blocks = _sparse_as_dense if assembly == "sparse" else getattr(assembly_module, assembly)
     from surfelwarp.tracking.blend_jacobian import twist_dual_quaternions
     from surfelwarp.tracking.terms.regulariser import regulariser_blocks
     rng = np.random.default_rng(6)
     field = turned_field(problem)
     knn, w = problem.knn.astype(np.int64), problem.weights.astype(np.float64)
-    sel = np.sort(rng.choice(len(knn), 3000, replace=False))
+    sel = np.sort(rng.choice(len(knn), 300 if assembly == "sparse" else 3000, replace=False))
     n = rng.normal(size=(len(sel), 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     r, rw = rng.normal(size=len(sel)) * 0.01, rng.uniform(0.2, 1.0, len(sel))

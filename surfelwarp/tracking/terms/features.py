@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from surfelwarp.geometry.dual_quaternion import _components, apply_components
-from surfelwarp.tracking.assembly import NormalEquations, point_blocks
+from surfelwarp.tracking.assembly import NormalEquations, sparse_point_blocks
 from surfelwarp.tracking.association import rigid_components
 from surfelwarp.tracking.features import AnchoredMatches, pixel_values
 from surfelwarp.tracking.terms import BaseTerm, Iterate, Problem, register, robust
@@ -64,9 +64,9 @@ class FeatureTerm(BaseTerm):
     def linearize(self, at: Iterate, system: NormalEquations) -> float:
         r = self.residuals(at)
         cost, w = robust(np.linalg.norm(r, axis=0), "huber", self.huber_m)
-        blocks, g = point_blocks(system.pattern, self.rows, at.blends, at.signed, self.points, self.normals,
-                                 system.D, r.reshape(-1), np.tile(self.weight * w, 3))
-        system.add(g, upper=blocks)
+        slots, blocks, g = sparse_point_blocks(system.pattern, self.rows, at.blends, at.signed, self.points,
+                                               self.normals, system.D, r.reshape(-1), np.tile(self.weight * w, 3))
+        system.add(g, upper=blocks, slots=slots)
         return float(np.sum(self.weight * cost))
 
 

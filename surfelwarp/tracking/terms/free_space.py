@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from surfelwarp.tracking.assembly import NormalEquations, point_blocks
+from surfelwarp.tracking.assembly import NormalEquations, sparse_point_blocks
 from surfelwarp.tracking.free_space import FreeSpace, SilhouetteParams
 from surfelwarp.tracking.terms import BaseTerm, Iterate, Problem, register, robust
 
@@ -34,8 +34,9 @@ class FreeSpaceTerm(BaseTerm):
     def linearize(self, at: Iterate, system: NormalEquations) -> float:
         e, sel, r, grad, w = self.seen_through(at)
         if len(sel):
-            blocks, g = point_blocks(system.pattern, sel, at.blends, at.signed, self.ref_points, grad.T, system.D, r, w)
-            system.add(g, upper=blocks)
+            slots, blocks, g = sparse_point_blocks(system.pattern, sel, at.blends, at.signed, self.ref_points, grad.T,
+                                                   system.D, r, w)
+            system.add(g, upper=blocks, slots=slots)
         return e
 
 
