@@ -256,6 +256,10 @@ def _weighted_median(a, w):
     median, and only that bin is sorted (argsort of a room's 300k pairs took ~18 ms)."""
     bins = 4096
     lo, hi = a.min(), a.max()
+    if not (np.isfinite(lo) and np.isfinite(hi)):     # what sorting does with them, NaN last
+        order = np.argsort(a)
+        cumulative = np.cumsum(w[order])
+        return a[order[np.searchsorted(cumulative, 0.5 * cumulative[-1])]]
     scale = bins / (hi - lo) if hi > lo else 0.0
     weight = np.zeros(bins + 1)
     for i in range(len(a)):

@@ -212,3 +212,4 @@ def test_the_weighted_median_is_sortings():
         expected = a[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])]
         assert _weighted_median(a, w) == expected
     assert _weighted_median(np.array([1.0, 2.0, 3.0]), np.array([1.0, 1.0, 5.0])) == 3.0
+    assert _weighted_median(np.array([1.0, np.inf, 3.0, np.nan]), np.ones(4)) == 3.0
