@@ -253,21 +253,13 @@ def _ball_widths(radius_px: int) -> np.ndarray:
     """Half-widths of the rows dy = -radius..radius of the pixels within chamfer distance
     radius_px of a pixel (the ball the occluder test's transform looks into)."""
     r = int(radius_px)
-    dy, dx = np.abs(np.mgrid[-r:r + 1, 0:r + 1])
-    inside = _chamfer_of(dy, dx) <= r
-    return (inside.sum(axis=1) - 1).astype(np.int64)
-
-
-def _chamfer_of(dy, dx):
-    """cv2's DIST_MASK_5 chamfer distance of pixel offsets (steps 1, diagonals 1.4, knight's
-    moves 2.1969) with nothing in the way: what its two-pass transform gives, to 5e-5 px."""
-    big, small = np.maximum(dy, dx), np.minimum(dy, dx)
-    return np.where(big >= 2 * small, small * np.float32(2.1969) + (big - 2 * small),
-                    (big - small) * np.float32(2.1969) + (2 * small - big) * np.float32(1.4))
+    return np.array([max(dx for dx in range(r + 1) if _chamfer(dy, dx) <= r) for dy in range(-r, r + 1)], np.int64)
 
 
 @numba.njit(cache=True, nogil=True)
 def _chamfer(dy, dx):
+    """cv2's DIST_MASK_5 chamfer distance of a pixel offset (steps 1, diagonals 1.4, knight's
+    moves 2.1969) with nothing in the way: what its two-pass transform gives, to 5e-5 px."""
     big, small = max(abs(dy), abs(dx)), min(abs(dy), abs(dx))
     if big >= 2 * small:
         return small * 2.1969 + (big - 2 * small)
