@@ -18,7 +18,7 @@ from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
                                           ModelView, checked_pairs, checked_points, combine, detect, flow_at,
                                           flow_pairs, grid_pixels, lift, locally_rigid, match_descriptors,
-                                          match_frames, mean_draw_offset, near_prediction, on_model_map, refine,
+                                          match_frames, near_prediction, on_model_map, refine,
                                           solved_index, surface_depth)
 
 
@@ -121,11 +121,8 @@ class ColourMatcher:
                                surface_depth(last.vertex_map, last.valid))
             return self._on_model(checked_pairs(*pairs, last.vertex_map, last.valid, *current), model, field,
                                   p.flow_weight)
-        # Each drawn colour is its surfel's, whose centre lies up to a pixel off the pixel that
-        # shows it, by an offset that the splats' overlap sets and that is biased one way: the
-        # flow of the drawn colours is the motion less that offset's local mean. So the flow is
-        # read where each centre projects and the local mean offset added back (read at the
-        # pixel instead, the pairs carry ~3 mm of noise at 1.3 m; without the mean, a 2 mm bias).
+        # The model's colour is drawn interpolated about the surfels' centres (render.colour_map),
+        # so each grid pixel's pair starts where the centre of the surfel drawn there projects.
         drawn = model.color_drawn
         source = np.where(drawn[..., None], model.color_map, last.color)
         grid = grid_pixels(drawn, p.flow_stride_px).astype(np.int64)
@@ -133,7 +130,6 @@ class ColourMatcher:
         pa = self.intrinsics.project(centres).astype(np.float32)
         depth = np.where(drawn, model.vertex_map[..., 2], surface_depth(last.vertex_map, last.valid))
         pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa, p, depth)
-        pb += mean_draw_offset(model.vertex_map, drawn, self.intrinsics)[grid[:, 1], grid[:, 0]]
         m = checked_points(pa[inside], pb[inside], centres[inside], np.ones(int(inside.sum()), bool), *current)
         return self._on_model(m, model, field, p.flow_weight)
 

@@ -251,27 +251,6 @@ def flow_at(previous_color: np.ndarray, current_color: np.ndarray, window: np.nd
     return target, inside
 
 
-def mean_draw_offset(vertex_map: np.ndarray, drawn: np.ndarray, intrinsics, window_px: int = 9) -> np.ndarray:
-    """(H, W, 2) float32: the mean, over a window_px box, of pixel minus the projection of the
-    point drawn there (x, y), where `drawn`; computed on the box around the drawn pixels (the
-    rest is zero)."""
-    h, w = drawn.shape
-    out = np.zeros((h, w, 2), np.float32)
-    rows, cols = bounding_box(drawn, window_px // 2 + 1)
-    drawn, vertex_map = drawn[rows, cols], vertex_map[rows, cols]
-    v, u = np.mgrid[rows, cols].astype(np.float32)
-    z = np.where(drawn, vertex_map[..., 2], 1.0)
-    offset = np.stack([u - (intrinsics.fx * vertex_map[..., 0] / z + intrinsics.cx),
-                       v - (intrinsics.fy * vertex_map[..., 1] / z + intrinsics.cy)], -1)
-    weight = drawn.astype(np.float32)
-    offset = np.where(drawn[..., None], offset, 0.0).astype(np.float32)
-    box = (window_px, window_px)
-    count = cv2.boxFilter(weight, -1, box, normalize=False)
-    total = cv2.boxFilter(offset, -1, box, normalize=False)
-    out[rows, cols] = total / np.maximum(count, 1.0)[..., None]
-    return out
-
-
 def flow_pairs(previous_color: np.ndarray, current_color: np.ndarray, previous_valid: np.ndarray,
                current_valid: np.ndarray, params: FeatureParams, previous_depth: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray]:
@@ -322,8 +301,9 @@ class ModelView:
     """The model as the feature stage reads it: `index_map` (H, W) of the surfels drawn at the
     last pose (-1: none), the solved surfels `visible` (sorted), and every surfel's live
     position (world), unique id (ascending; None: points do not live on), skinning knn and
-    weights; optionally the drawn points (camera frame at the last pose) and their fused colour
-    (uint8 RGB) where `color_drawn`."""
+    weights; optionally the drawn points (camera frame at the last pose) and the fused colour
+    (uint8 RGB) where `color_drawn`, interpolated about the surfels' centres
+    (render.colour_map)."""
     index_map: np.ndarray
     visible: np.ndarray
     live_position: np.ndarray

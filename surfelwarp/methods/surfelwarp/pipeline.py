@@ -29,6 +29,7 @@ from surfelwarp.methods.surfelwarp.params import SurfelWarpParams
 from surfelwarp.methods.surfelwarp.reinit import ReinitTrigger, unsupported_mask
 from surfelwarp.methods.surfelwarp.surfels import SurfelModel
 from surfelwarp.preprocess import CameraObservation
+from surfelwarp.render.colour_map import colour_map
 from surfelwarp.render.index_map import render_index_map
 from surfelwarp.render.solver_maps import maps_to_world, render_solver_maps
 from surfelwarp.timing import StageTimer
@@ -235,13 +236,10 @@ class SurfelWarpMethod:
 
     def _model_view(self, maps, visible: np.ndarray) -> ModelView:
         """The model as the feature stage reads it, with its fused colour drawn on the solver maps."""
-        m, hit = self.model, maps.index >= 0
+        m = self.model
         color = drawn = None
         if self.has_color:
-            drawn = hit.copy()
-            drawn[hit] = m.color_weight[maps.index[hit]] > 0
-            color = np.zeros(maps.index.shape + (3,), np.uint8)
-            color[drawn] = np.clip(np.rint(m.color[maps.index[drawn]]), 0, 255).astype(np.uint8)
+            color, drawn = colour_map(maps, m.color_weight > 0, m.color)
         return ModelView(maps.index, visible, m.live_position, m.ids, m.knn, m.weights, maps.vertex, color, drawn)
 
     def _new_reference(self, obs: CameraObservation) -> None:
