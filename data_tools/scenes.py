@@ -182,6 +182,22 @@ def orbit() -> Animation:
     return Animation(faces, part, np.zeros(len(vertices), bool), lambda i: vertices, camera)
 
 
+def wall_slide() -> Animation:
+    """A textured flat wall filling the view, the camera sliding along it and turning about its
+    normal: depth sees a plane, which fixes only the camera's distance and tilt."""
+    wall, faces = meshes.plane(3.0, 2.4, SPACING_M)
+    vertices = wall + [0.0, 0.0, 1.1]
+
+    def camera(i: int) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = rotation("z", np.deg2rad(0.15) * i)
+        T[:3, 3] = [0.007 * i, 0.003 * i, 0.0]
+        return T
+
+    return Animation(faces, np.zeros(len(vertices), np.int16), np.zeros(len(vertices), bool), lambda i: vertices,
+                     camera)
+
+
 def _ramp(t: float, ease: float = 0.2) -> float:
     """0 -> 1 over t in [0, 1] at constant speed, easing in and out over `ease` of the time
     (speed 1 / (1 - ease): 1.25, against 1.57 for a cosine)."""
@@ -337,6 +353,8 @@ SCENES = {s.name: s for s in (
     Scene("release", "two fingers touching at first, open, close again, reopen", 90, release),
     Scene("fast", "a bumpy ball moving up to ~4.5 cm and turning ~3 deg per frame", 60, fast),
     Scene("orbit", "the camera circles 100 deg around a static still life (pedestal, ball, ring, rod)", 100, orbit),
+    Scene("wall-slide", "the camera slides 28 cm along a textured flat wall that fills the view and turns 6 deg "
+          "about its normal (depth fixes only distance and tilt: colour only)", 40, wall_slide),
     Scene("limb-wall", "a 9 cm thick limb bending 100 deg and back in front of a lone flat wall, still camera", 40,
           limb_wall, max_strain=0.23),
     Scene("free-sheet", "a free sheet (no still edge) turning slowly, waves travelling across it", 40, free_sheet),

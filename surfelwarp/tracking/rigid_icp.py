@@ -73,6 +73,15 @@ class RigidResult:
 
 
 @dataclass(frozen=True)
+class PointPairs:
+    """Point-to-point pairs (colour correspondences): observation points (n, 3) in the camera
+    frame, the world points (n, 3) they should land on, and weights (n,)."""
+    camera: np.ndarray
+    world: np.ndarray
+    weights: np.ndarray
+
+
+@dataclass(frozen=True)
 class _Level:
     # Component-major (3, N) arrays: gathers and compactions along the last axis are the
     # fast ones in numpy.
@@ -179,12 +188,14 @@ def _pairs(obs_v, obs_n, model_v, model_n, model_valid, model_w, weighted, T, T_
 def rigid_icp(model_vertex_map: np.ndarray, model_normal_map: np.ndarray, T_model_camera_to_world: np.ndarray,
               observation: CameraObservation, T_init_camera_to_world: np.ndarray,
               params: RigidParams = RigidParams(), model_intrinsics: Intrinsics | None = None,
-              model_weight_map: np.ndarray | None = None) -> RigidResult:
+              model_weight_map: np.ndarray | None = None, pairs: PointPairs | None = None) -> RigidResult:
     """Camera-to-world pose of `observation` aligned to world-frame model maps.
 
     The model maps (H, W, 3), zero where empty, were rendered from T_model_camera_to_world with
     `model_intrinsics` (default: the observation's camera, which then needs the same size);
-    model_weight_map (H, W), if given, weighs each model pixel's pairs.
+    model_weight_map (H, W), if given, weighs each model pixel's pairs. `pairs` (colour) then
+    move the pose along the directions the depth held (along_held), and only those: where depth
+    sees the motion it leads.
     """
     if len(params.iterations) != params.pyramid_levels or len(params.distance_gate_m) != params.pyramid_levels:
         raise ValueError("iterations and distance_gate_m need one entry per pyramid level")
@@ -210,11 +221,37 @@ def rigid_icp(model_vertex_map: np.ndarray, model_normal_map: np.ndarray, T_mode
                 (1 - params.weak_median_gain) * _median_residual(levels[-1], T2, T_world_to_model, params):
             T, settled, held = T2, settled2, info2.held(params.weak_eigen_ratio)
 
+    if pairs is not None and held is not None and len(held) and len(pairs.weights):
+        T = along_held(T, held, pairs)
     _, _, r, _ = _associate(levels[-1], T, T_world_to_model, params.min_normal_cos)
     if len(r) < params.min_correspondences:
         return RigidResult(T_init, total, float("nan"), float("nan"), len(r), False, held)
     energy = float(np.mean(r.astype(np.float64) ** 2))
     return RigidResult(T, total, energy, float(np.sqrt(energy)), len(r), settled, held)
+
+
+def along_held(T: np.ndarray, held: HeldDirections, pairs: PointPairs, iterations: int = 5,
+               stop_m: float = 1e-6) -> np.ndarray:
+    """T moved along the held directions only, to fit the point pairs (Gauss-Newton on
+    w |exp(B a) T q - x|^2, B the held directions as world twists): a flat wall's depth fixes
+    the camera's distance and tilt, the colour on it the slide along it and the turn about it."""
+    B = np.stack([held.frame.to_world(b) for b in held.basis.T], 1)          # (6, k)
+    q, x = np.asarray(pairs.camera, np.float64), np.asarray(pairs.world, np.float64)
+    w = np.asarray(pairs.weights, np.float64)
+    for _ in range(iterations):
+        p = q @ T[:3, :3].T + T[:3, 3]
+        J = np.zeros((len(p), 3, 6))                   # d(exp(xi) p) / d(omega, v) at xi = 0
+        J[:, 0, 1], J[:, 0, 2], J[:, 1, 0] = p[:, 2], -p[:, 1], -p[:, 2]
+        J[:, 1, 2], J[:, 2, 0], J[:, 2, 1] = p[:, 0], p[:, 1], -p[:, 0]
+        J[:, :, 3:] = np.eye(3)
+        JB = J @ B
+        H = np.einsum("n,nik,nil->kl", w, JB, JB)
+        g = np.einsum("n,nik,ni->k", w, JB, p - x)
+        a = -np.linalg.solve(H + 1e-12 * np.trace(H) * np.eye(len(H)), g)
+        T = se3_exp(B @ a) @ T
+        if np.abs(B @ a).max() < stop_m:
+            break
+    return T
 
 
 def _align(levels: list[_Level], T_init: np.ndarray, T_world_to_model: np.ndarray, params: RigidParams,

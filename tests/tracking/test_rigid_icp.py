@@ -7,7 +7,7 @@ from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import invert, se3_exp, so3_log
 from surfelwarp.io.sequence import open_sequence
 from surfelwarp.preprocess import PreprocessParams, preprocess
-from surfelwarp.tracking.rigid_icp import RigidParams, _weighted_median, halved, rigid_icp
+from surfelwarp.tracking.rigid_icp import PointPairs, RigidParams, _weighted_median, halved, rigid_icp
 
 from conftest import shared_data
 
@@ -102,6 +102,56 @@ def test_no_overlap_returns_the_initial_guess(synthetic):
     flipped = se3_exp(np.array([0, np.pi, 0, 0, 0, 0]))
     res = rigid_icp(first.vertex_map, first.normal_map, flipped, second, np.eye(4))
     assert not res.converged and res.inliers < RigidParams().min_correspondences
+
+
+def wall_depth(T_camera_to_world: np.ndarray) -> np.ndarray:
+    """Depth of the plane z = 1.1 (world) filling the view."""
+    u, v = np.meshgrid(np.arange(INTR.width), np.arange(INTR.height))
+    d = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones(u.shape)], -1) @ T_camera_to_world[:3, :3].T
+    t = (1.1 - T_camera_to_world[2, 3]) / d[..., 2]
+    return (np.round(t * 1000) / 1000).astype(np.float32)
+
+
+WALL_SLIDE = se3_exp(np.array([0.0, 0.0, np.deg2rad(1.0), 0.02, -0.01, 0.0]))   # along the wall, about its normal
+
+
+def wall_points(T_camera_to_world: np.ndarray, n=300, seed=0, noise_m=0.0):
+    """Colour pairs on the wall: world points and where a camera at T_camera_to_world sees them."""
+    rng = np.random.default_rng(seed)
+    world = np.c_[rng.uniform(-0.4, 0.4, (n, 2)), np.full(n, 1.1)]
+    camera = (world - T_camera_to_world[:3, 3]) @ T_camera_to_world[:3, :3]
+    return world, camera + rng.normal(scale=noise_m, size=camera.shape)
+
+
+def test_a_wall_alone_holds_the_pose_and_colour_pairs_move_it():
+    """Depth of a flat wall fixes only the camera's distance and tilt: ICP holds the slide
+    along it and the turn about its normal. Colour pairs on the wall give those back, and only
+    those: pairs that disagree with the depth about the distance do not move it."""
+    first = preprocess(wall_depth(np.eye(4)), INTR, 0, 0)
+    second = preprocess(wall_depth(WALL_SLIDE), INTR, 1, 1)
+    alone = rigid_icp(first.vertex_map, first.normal_map, np.eye(4), second, np.eye(4))
+    assert alone.degenerate_directions == 3
+    assert pose_error(alone.T_camera_to_world, np.eye(4))[0] < 1e-4       # held where it was
+    world, camera = wall_points(WALL_SLIDE, noise_m=0.001)
+    res = rigid_icp(first.vertex_map, first.normal_map, np.eye(4), second, np.eye(4),
+                    pairs=PointPairs(camera, world, np.full(len(world), 10.0)))
+    dt, dr = pose_error(res.T_camera_to_world, WALL_SLIDE)
+    assert dt < 3e-4 and dr < 0.03, (dt, dr)
+    assert res.degenerate_directions == 3 and res.inliers > 0.8 * alone.inliers and res.rmse_m < 0.001
+    # The same pairs 5 cm farther away and tilted 3 degrees: depth still decides distance and tilt.
+    tilt = se3_exp(np.array([np.deg2rad(3.0), 0.0, 0.0, 0.0, 0.0, 0.05]))
+    res = rigid_icp(first.vertex_map, first.normal_map, np.eye(4), second, np.eye(4),
+                    pairs=PointPairs(camera, world @ tilt[:3, :3].T + tilt[:3, 3], np.full(len(world), 10.0)))
+    assert abs(res.T_camera_to_world[2, 3] - WALL_SLIDE[2, 3]) < 5e-4
+    assert np.degrees(np.arccos(np.clip(res.T_camera_to_world[2, 2], -1, 1))) < 0.1
+    # Without held directions the pairs change nothing.
+    first, second = preprocess(scene_depth(np.eye(4)), INTR, 0, 0), preprocess(scene_depth(MOTION), INTR, 1, 1)
+    world, camera = wall_points(np.eye(4))
+    plain = rigid_icp(first.vertex_map, first.normal_map, np.eye(4), second, np.eye(4))
+    paired = rigid_icp(first.vertex_map, first.normal_map, np.eye(4), second, np.eye(4),
+                       pairs=PointPairs(camera, world, np.full(len(world), 10.0)))
+    assert plain.degenerate_directions == 0
+    np.testing.assert_array_equal(paired.T_camera_to_world, plain.T_camera_to_world)
 
 
 def test_halved_intrinsics_match_subsampled_pixels():

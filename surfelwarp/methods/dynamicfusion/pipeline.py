@@ -128,15 +128,15 @@ class DynamicFusionMethod:
         timer.lap("solver_maps")
 
         world_vertex, world_normal = maps_to_world(maps, T_rendered)
-        rigid = self.tracker.rigid(world_vertex, world_normal, obs,
-                                   self.tracker.stillness_map(maps.index, mesh.knn, mesh.weights))
-        timer.lap("rigid")
-
         surfels = self.predicted_points(maps, T_rendered)
         timer.lap("predict")
         # Colour features and flow of the last frame matched into this one, on the points drawn at them.
         matches = self.tracker.features(obs, self.model_view(maps, world_vertex, surfels), self.field)
         timer.lap("features")
+        rigid = self.tracker.rigid(world_vertex, world_normal, obs,
+                                   self.tracker.stillness_map(maps.index, mesh.knn, mesh.weights),
+                                   self.tracker.colour_pairs(matches, surfels, self.field))
+        timer.lap("rigid")
         solved, nonrigid = self.tracker.nonrigid(self.field, surfels, obs, matches)
         self.field = self.tracker.factor(solved, nonrigid)
         timer.lap("nonrigid")

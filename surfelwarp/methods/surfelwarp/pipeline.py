@@ -103,20 +103,23 @@ class SurfelWarpMethod:
                                   m.radius, self.intrinsics, indices=drawn, fill_indices=fill)
         timer.lap("solver_maps")
 
-        # Rigid alignment of the observation to the rendered model, led by its still parts.
-        rigid = self.tracker.rigid(*maps_to_world(maps, self.T_camera_to_world), obs,
-                                   self.tracker.stillness_map(maps.index, m.knn, m.weights))
-        timer.lap("rigid")
-
-        # Non-rigid warp field on the visible surfels; its common rigid motion goes into the pose.
+        # Colour features of the last frame matched into this one, on the visible surfels drawn
+        # at them.
         seen = np.zeros(len(m), bool)
         seen[maps.index[maps.index >= 0]] = True
         visible = np.flatnonzero(seen)
         surfels = SurfelSet(*(np.take(a, visible, axis=0) for a in (m.ref_position, m.ref_normal, m.knn, m.weights)))
-
-        # Colour features of the last frame matched into this one, on the surfels drawn at them.
         matches = self.tracker.features(obs, self._model_view(maps, visible), self.field)
         timer.lap("features")
+
+        # Rigid alignment of the observation to the rendered model (and the colour pairs), led
+        # by its still parts.
+        rigid = self.tracker.rigid(*maps_to_world(maps, self.T_camera_to_world), obs,
+                                   self.tracker.stillness_map(maps.index, m.knn, m.weights),
+                                   self.tracker.colour_pairs(matches, surfels, self.field))
+        timer.lap("rigid")
+
+        # Non-rigid warp field on the visible surfels; its common rigid motion goes into the pose.
         field, nonrigid = self.tracker.nonrigid(self.field, surfels, obs, matches)
         self.field = self.tracker.factor(field, nonrigid)
         timer.lap("nonrigid")
