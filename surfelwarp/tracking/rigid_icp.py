@@ -230,6 +230,15 @@ def rigid_icp(model_vertex_map: np.ndarray, model_normal_map: np.ndarray, T_mode
     return RigidResult(T, total, energy, float(np.sqrt(energy)), len(r), settled, held)
 
 
+def point_jacobian(p: np.ndarray) -> np.ndarray:
+    """(n, 3, 6) derivative of exp(xi) p by the twist xi = (omega, v) at xi = 0: (-[p]x, I)."""
+    J = np.zeros((len(p), 3, 6))
+    J[:, 0, 1], J[:, 0, 2], J[:, 1, 0] = p[:, 2], -p[:, 1], -p[:, 2]
+    J[:, 1, 2], J[:, 2, 0], J[:, 2, 1] = p[:, 0], p[:, 1], -p[:, 0]
+    J[:, :, 3:] = np.eye(3)
+    return J
+
+
 def along_held(T: np.ndarray, held: HeldDirections, pairs: PointPairs, iterations: int = 5,
                stop_m: float = 1e-6) -> np.ndarray:
     """T moved along the held directions only, to fit the point pairs (Gauss-Newton on
@@ -238,13 +247,11 @@ def along_held(T: np.ndarray, held: HeldDirections, pairs: PointPairs, iteration
     B = np.stack([held.frame.to_world(b) for b in held.basis.T], 1)          # (6, k)
     q, x = np.asarray(pairs.camera, np.float64), np.asarray(pairs.world, np.float64)
     w = np.asarray(pairs.weights, np.float64)
+    if len(w) < 3 or not w.sum() > 0:
+        return T
     for _ in range(iterations):
         p = q @ T[:3, :3].T + T[:3, 3]
-        J = np.zeros((len(p), 3, 6))                   # d(exp(xi) p) / d(omega, v) at xi = 0
-        J[:, 0, 1], J[:, 0, 2], J[:, 1, 0] = p[:, 2], -p[:, 1], -p[:, 2]
-        J[:, 1, 2], J[:, 2, 0], J[:, 2, 1] = p[:, 0], p[:, 1], -p[:, 0]
-        J[:, :, 3:] = np.eye(3)
-        JB = J @ B
+        JB = point_jacobian(p) @ B
         H = np.einsum("n,nik,nil->kl", w, JB, JB)
         g = np.einsum("n,nik,ni->k", w, JB, p - x)
         a = -np.linalg.solve(H + 1e-12 * np.trace(H) * np.eye(len(H)), g)
