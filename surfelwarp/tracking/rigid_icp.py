@@ -20,7 +20,7 @@ import numba
 import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.geometry.se3 import invert, se3_exp
+from surfelwarp.geometry.se3 import invert, se3_exp, skew
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.degeneracy import HeldDirections, step
 
@@ -232,11 +232,7 @@ def rigid_icp(model_vertex_map: np.ndarray, model_normal_map: np.ndarray, T_mode
 
 def point_jacobian(p: np.ndarray) -> np.ndarray:
     """(n, 3, 6) derivative of exp(xi) p by the twist xi = (omega, v) at xi = 0: (-[p]x, I)."""
-    J = np.zeros((len(p), 3, 6))
-    J[:, 0, 1], J[:, 0, 2], J[:, 1, 0] = p[:, 2], -p[:, 1], -p[:, 2]
-    J[:, 1, 2], J[:, 2, 0], J[:, 2, 1] = p[:, 0], p[:, 1], -p[:, 0]
-    J[:, :, 3:] = np.eye(3)
-    return J
+    return np.concatenate([-skew(p), np.broadcast_to(np.eye(3), (len(p), 3, 3))], axis=-1)
 
 
 def along_held(T: np.ndarray, held: HeldDirections, pairs: PointPairs, iterations: int = 5,
