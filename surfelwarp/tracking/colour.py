@@ -31,7 +31,7 @@ class ColourMatcher:
         self._previous_features: tuple[Keypoints, CameraObservation] | None = None
         self._detected: tuple[CameraObservation, Keypoints] | None = None
         self._keyframe: Keyframe | None = None
-        self._T_previous = self.T_camera_to_world = np.eye(4)
+        self._T_last = np.eye(4)
 
     def _keypoints(self, obs: CameraObservation) -> Keypoints:
         """The observation's features, detected once."""
@@ -58,15 +58,16 @@ class ColourMatcher:
                                   np.asarray(ids)[j[near]], surface_depth(obs.vertex_map, obs.valid))
 
     def matches(self, obs: CameraObservation, model: ModelView | None, field: WarpField | None,
-                T_previous: np.ndarray, T_camera_to_world: np.ndarray) -> AnchoredMatches | None:
+                T_last: np.ndarray) -> AnchoredMatches | None:
         """Colour correspondences of `obs` with the reference frame's and the last frame's, on
-        the surfels the solve uses (`field`: the warp at the last frame; T_previous the last
-        frame's pose, T_camera_to_world this one's after rigid ICP). Remembers obs for the next
-        frame; with no model (the first frame) that is all. None without colour."""
+        the surfels the solve uses (`field`: the warp at the last frame; T_last the last frame's
+        camera-to-world pose, the prediction of this one's: the checks allow the camera's motion
+        as they allow the scene's). Remembers obs for the next frame; with no model (the first
+        frame) that is all. None without colour."""
         if obs.color is None:
             self._previous_features = None
             return None
-        self._T_previous, self.T_camera_to_world = T_previous, T_camera_to_world
+        self._T_last = T_last
         p = self.params
         kp = self._keypoints(obs)
         previous, self._previous_features = self._previous_features, (kp, obs)
@@ -75,7 +76,7 @@ class ColourMatcher:
         found = [self._keyframe_matches(kp, obs, model, field)] if self._keyframe is not None else []
         if previous is not None:
             last_kp, last = previous
-            T = invert(self.T_camera_to_world) @ self._T_previous
+            T = np.eye(4)         # last to this camera, predicted
             depth = (last.vertex_map, last.valid, obs.vertex_map, obs.valid, T, p)
             found.append(self._on_model(match_frames(last_kp, kp, *depth), model, field, 1.0))
             if p.flow:
@@ -100,10 +101,10 @@ class ColourMatcher:
         predicted, _ = warp(kf.points[ia], None, model.knn[index], model.weights[index], field)
         # The solve's surfels are those the model map shows, one a pixel: the feature goes on
         # the one drawn where the last frame's warp puts it (its neighbour, skinned alike).
-        pixels = self.intrinsics.project(transform_points(invert(self._T_previous), predicted))
+        pixels = self.intrinsics.project(transform_points(invert(self._T_last), predicted))
         drawn, ok = on_model_map(pixels, predicted, model, p.anchor_distance_m)
         solved, in_solve = solved_index(drawn, model.visible)
-        seen = transform_points(self.T_camera_to_world, q)
+        seen = transform_points(self._T_last, q)
         ok &= in_solve
         ok &= near_prediction(np.linalg.norm(predicted - seen, axis=1), ok, p)
         keep = np.flatnonzero(ok)[locally_rigid(predicted[ok], seen[ok], p)]
@@ -135,7 +136,7 @@ class ColourMatcher:
 
     def _on_model(self, m: FeatureMatches, model: ModelView, field: WarpField, weight: float) -> AnchoredMatches:
         """Last-frame matches on the surfels the model map showed at them."""
-        world = transform_points(self._T_previous, m.previous_points)
+        world = transform_points(self._T_last, m.previous_points)
         index, keep = on_model_map(m.previous_pixels, world, model, self.params.anchor_distance_m)
         solved, in_solve = solved_index(index, model.visible)
         keep &= in_solve

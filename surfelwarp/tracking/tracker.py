@@ -230,7 +230,7 @@ class Tracker:
         self._feature_count = None
         if self.params.nonrigid.feature_weight <= 0:
             return None
-        matches = self.colour.matches(obs, model, field, self.T_camera_to_world, self.T_camera_to_world)
+        matches = self.colour.matches(obs, model, field, self.T_camera_to_world)
         self._feature_count = None if matches is None else len(matches)
         return matches
 
