@@ -47,8 +47,9 @@ void main() {
         hi = max(hi, uv);
     }
     vec2 centre = 0.5 * (lo + hi);
-    // +1 on each side: pixel centres within the box are strictly inside despite rounding.
-    vec2 half_size = min(0.5 * (hi - lo) + 1.0, vec2(0.5 * u_max_size));
+    // 0.01 px on each side: a pixel centre on the box's edge stays inside despite rounding
+    // (~1e-4 px). A margin of 1 px tried ~1.8x the pixels on disks 2 px across, all missed.
+    vec2 half_size = min(0.5 * (hi - lo) + 0.01, vec2(0.5 * u_max_size));
     if (any(isnan(centre)) || any(isinf(centre)) || any(isnan(half_size))) return;
     // Clamped on both sides before the conversion to int (a float beyond int range converts
     // to anything).

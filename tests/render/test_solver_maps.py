@@ -99,6 +99,26 @@ def test_solver_maps_match_ray_disk_reference(groups_x, monkeypatch):
     assert not maps.vertex[~hit].any()
 
 
+def test_small_disks_match_the_reference():
+    """Disks 0.6-3 px in radius, as a model's surfels are: each pixel whose ray meets one is found
+    (the pixels tried about a disk barely exceed its projection), and no other."""
+    rng = np.random.default_rng(11)
+    m = 4000
+    z = rng.uniform(0.6, 1.5, m)
+    u, v = rng.uniform(0, K.width, m), rng.uniform(0, K.height, m)
+    p = np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], 1).astype(np.float32)
+    n = unit(-unit(p) + rng.normal(scale=0.3, size=(m, 3))).astype(np.float32)
+    r = (rng.uniform(0.6, 3.0, m) * z / K.fx).astype(np.float32)
+    maps = render_solver_maps(p, n, r, K)
+    ref, unsure, _ = reference(p, n, r, K)
+    checked = ~unsure
+    assert ((ref >= 0) & checked).sum() > 12000
+    assert (maps.index == ref)[checked].mean() >= 0.999
+    # On the rims too: as many pixels covered as rays meet a disk.
+    covered, expected = (maps.index >= 0).sum(), (ref >= 0).sum()
+    assert abs(covered / expected - 1) < 0.002, (covered, expected)
+
+
 def test_selected_surfels_keep_full_array_indices():
     p, n, r = scene(seed=4)
     chosen = np.flatnonzero(np.arange(len(p)) % 3 != 1)
