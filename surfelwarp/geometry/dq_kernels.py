@@ -42,10 +42,23 @@ def _rotate(w, x, y, z, c, w2, x2, y2, z2, px, py, pz):
             c * pz + d * z + w2 * (x * py - y * px))
 
 
-@numba.njit(cache=True, nogil=True)
+CHUNK = 4096    # points per parallel task: each task allocates its scratch once
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _blend_apply(dqs, knn, weights, points, normals, with_normals, blends, signed, live, live_n, inverse):
+    # Every point is computed alone, so the split over threads changes no bit of the output.
+    n = knn.shape[0]
+    for task in numba.prange((n + CHUNK - 1) // CHUNK):
+        _blend_range(dqs, knn, weights, points, normals, with_normals, blends, signed, live, live_n, inverse,
+                     task * CHUNK, min(n, (task + 1) * CHUNK))
+
+
+@numba.njit(cache=True, nogil=True)
+def _blend_range(dqs, knn, weights, points, normals, with_normals, blends, signed, live, live_n, inverse,
+                 start, end):
     b = np.empty(8)
-    for i in range(knn.shape[0]):
+    for i in range(start, end):
         _blend_one(dqs, knn, weights, i, signed, b)
         for j in range(8):
             blends[i, j] = b[j]

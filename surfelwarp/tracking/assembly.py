@@ -15,7 +15,8 @@ import scipy.sparse as sp
 
 from surfelwarp.geometry.dual_quaternion import _components
 from surfelwarp.geometry.se3 import skew
-from surfelwarp.tracking.blend_jacobian import residual_row, residual_rows
+from surfelwarp.tracking.assembly_kernels import point_sums_split, sandwich
+from surfelwarp.tracking.blend_jacobian import residual_rows
 from surfelwarp.tracking.coarse import CoarseSpace
 
 
@@ -232,16 +233,19 @@ def sparse_point_blocks(pattern, sel, b, signed, points, normals, D, r, w):
     return (slots, *_blocks_from_sums(pattern.lo[slots], pattern.hi[slots], D, A, e))
 
 
-_EVERY_SLOT = np.zeros(0, np.int64)     # _point_sums' slot map meaning "as they are"
+_EVERY_SLOT = np.zeros(0, np.int64)     # point_sums' slot map meaning "as they are"
+# Calls of CHUNK or more correspondences sum TASKS parts apart, a thread each, then add them.
+# Fixed, so that the order of the sums (every bit of the blocks) does not depend on the cores.
+TASKS = 2
 
 
 def _sums_into(pattern, sel, b, signed, points, normals, r, w, compact, A):
     e = np.zeros((pattern.num_nodes, 8))
-    _point_sums(np.ascontiguousarray(sel, np.int64), np.ascontiguousarray(b, np.float64),
-                np.ascontiguousarray(signed, np.float64), np.ascontiguousarray(points, np.float64),
-                np.ascontiguousarray(normals, np.float64), np.ascontiguousarray(r, np.float64),
-                np.ascontiguousarray(w, np.float64), pattern.knn, pattern.slots, pattern.double,
-                pattern.pair_s, pattern.pair_t, compact, A, e)
+    point_sums_split(np.ascontiguousarray(sel, np.int64), np.ascontiguousarray(b, np.float64),
+                     np.ascontiguousarray(signed, np.float64), np.ascontiguousarray(points, np.float64),
+                     np.ascontiguousarray(normals, np.float64), np.ascontiguousarray(r, np.float64),
+                     np.ascontiguousarray(w, np.float64), pattern.knn, pattern.slots, pattern.double,
+                     pattern.pair_s, pattern.pair_t, compact, A, e, TASKS if len(sel) >= CHUNK else 1)
     return e
 
 
@@ -249,60 +253,8 @@ def _blocks_from_sums(lo, hi, D, A, e):
     """Blocks D_lo A D_hi^T of the summed symmetric 8x8 products A (one row per pair lo, hi)
     and the gradient D e: compiled, as numpy's batched 6x8x8 products cost as much as the sums."""
     blocks = np.empty((len(lo), 6, 6))
-    _sandwich(np.ascontiguousarray(D, np.float64), lo, hi, A, _SYM8.reshape(8, 8), blocks)
+    sandwich(np.ascontiguousarray(D, np.float64), lo, hi, A, _SYM8.reshape(8, 8), blocks)
     return blocks, np.einsum("nij,nj->ni", D, e)
-
-
-@numba.njit(cache=True, nogil=True)
-def _sandwich(D, lo, hi, A, sym, out):
-    DA = np.empty((6, 8))
-    for n in range(len(lo)):
-        a, b = lo[n], hi[n]
-        for i in range(6):
-            for j in range(8):
-                acc = 0.0
-                for m in range(8):
-                    acc += D[a, i, m] * A[n, sym[m, j]]
-                DA[i, j] = acc
-        for i in range(6):
-            for j in range(6):
-                acc = 0.0
-                for m in range(8):
-                    acc += DA[i, m] * D[b, j, m]
-                out[n, i, j] = acc
-
-
-@numba.njit(cache=True, nogil=True)
-def _point_sums(sel, b, signed, points, normals, r, w, knn, slots, double, pair_s, pair_t, compact, A, e):
-    """A[slot] and e[node] summed over the surfels sel; `compact` maps slots to rows of A
-    (empty: the slots are the rows)."""
-    rows = np.empty(8)
-    Q = np.empty(36)
-    k = knn.shape[1]
-    for c in range(len(sel)):
-        i = sel[c]
-        residual_row(b[i], points[0, i], points[1, i], points[2, i], normals[c, 0], normals[c, 1], normals[c, 2],
-                     rows)
-        q = 0
-        for a in range(8):
-            for a2 in range(a, 8):
-                Q[q] = rows[a] * rows[a2]
-                q += 1
-        for p in range(len(pair_s)):
-            coef = w[c] * signed[i, pair_s[p]] * signed[i, pair_t[p]]
-            if double[i, p]:
-                coef *= 2.0
-            slot = slots[i, p]
-            if len(compact):
-                slot = compact[slot]
-            for q in range(36):
-                A[slot, q] += coef * Q[q]
-        wr = w[c] * r[c]
-        for s in range(k):
-            g = signed[i, s] * wr
-            node = knn[i, s]
-            for a in range(8):
-                e[node, a] += g * rows[a]
 
 
 def point_blocks_reference(pattern, sel, b, signed, points, normals, D, r, w):

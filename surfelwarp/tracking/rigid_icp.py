@@ -142,13 +142,41 @@ def _associate(level: _Level, T: np.ndarray, T_world_to_model: np.ndarray, min_n
     return out_p[:, :k], out_n[:, :k], r[:k], (w[:k] if level.model_weight is not None else None)
 
 
-@numba.njit(cache=True, nogil=True)
+PAIRS_CHUNK = 8192     # observation points per parallel task of _pairs
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _pairs(obs_v, obs_n, model_v, model_n, model_valid, model_w, weighted, T, T_wm, c, width, height,
            out_p, out_n, out_r, out_w):
-    """The projective pairs of _associate in one pass (float32 as the maps): their count."""
-    fx, fy, cx, cy, gate2, min_cos = c[0], c[1], c[2], c[3], c[4], c[5]
+    """The projective pairs of _associate (float32 as the maps), in the observation's order:
+    their count. Each task writes its pairs from its own first point on, then they are closed up."""
+    n = obs_v.shape[1]
+    tasks = (n + PAIRS_CHUNK - 1) // PAIRS_CHUNK
+    counts = np.zeros(tasks, np.int64)
+    for t in numba.prange(tasks):
+        counts[t] = _pairs_range(obs_v, obs_n, model_v, model_n, model_valid, model_w, weighted, T, T_wm, c,
+                                 width, height, out_p, out_n, out_r, out_w, t * PAIRS_CHUNK,
+                                 min(n, (t + 1) * PAIRS_CHUNK))
     k = 0
-    for i in range(obs_v.shape[1]):
+    for t in range(tasks):
+        start = t * PAIRS_CHUNK
+        for j in range(start, start + counts[t]):
+            for a in range(3):
+                out_p[a, k] = out_p[a, j]
+                out_n[a, k] = out_n[a, j]
+            out_r[k] = out_r[j]
+            if weighted:
+                out_w[k] = out_w[j]
+            k += 1
+    return k
+
+
+@numba.njit(cache=True, nogil=True)
+def _pairs_range(obs_v, obs_n, model_v, model_n, model_valid, model_w, weighted, T, T_wm, c, width, height,
+                 out_p, out_n, out_r, out_w, start, end):
+    fx, fy, cx, cy, gate2, min_cos = c[0], c[1], c[2], c[3], c[4], c[5]
+    k = start
+    for i in range(start, end):
         x, y, z = obs_v[0, i], obs_v[1, i], obs_v[2, i]
         p0 = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
         p1 = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
@@ -182,7 +210,7 @@ def _pairs(obs_v, obs_n, model_v, model_n, model_valid, model_w, weighted, T, T_
         if weighted:
             out_w[k] = model_w[pix]
         k += 1
-    return k
+    return k - start
 
 
 def rigid_icp(model_vertex_map: np.ndarray, model_normal_map: np.ndarray, T_model_camera_to_world: np.ndarray,

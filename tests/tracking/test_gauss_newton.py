@@ -394,19 +394,24 @@ def _sparse_as_dense(pattern, *args):
     return system.upper, system.gradient
 
 
-@pytest.mark.parametrize("assembly", ["point_blocks", "point_blocks_reference", "sparse"])
-def test_factored_normal_equations_equal_the_generic_ones(problem, assembly):
+@pytest.mark.parametrize("assembly", ["point_blocks", "point_blocks_reference", "sparse", "split", "sparse split"])
+def test_factored_normal_equations_equal_the_generic_ones(problem, assembly, monkeypatch):
     from surfelwarp.geometry.dual_quaternion import _components, dq_blend_indexed
     from surfelwarp.tracking import assembly as assembly_module
     from surfelwarp.tracking.assembly import BlockPattern
-    # compiled, its numpy reference, and the compiled one on the touched pairs alone
-    point_blocks = _sparse_as_dense if assembly == "sparse" else getattr(assembly_module, assembly)
+    # compiled, its numpy reference, the compiled one on the touched pairs alone, and both with
+    # the pairs summed in three parts (as large calls are, in TASKS parts)
+    if "split" in assembly:
+        monkeypatch.setattr(assembly_module, "CHUNK", 64)
+        monkeypatch.setattr(assembly_module, "TASKS", 3)
+    name = assembly.replace("split", "point_blocks")
+    point_blocks = _sparse_as_dense if "sparse" in assembly else getattr(assembly_module, name)
     from surfelwarp.tracking.blend_jacobian import twist_dual_quaternions
     from surfelwarp.tracking.terms.regulariser import regulariser_blocks
     rng = np.random.default_rng(6)
     field = turned_field(problem)
     knn, w = problem.knn.astype(np.int64), problem.weights.astype(np.float64)
-    sel = np.sort(rng.choice(len(knn), 300 if assembly == "sparse" else 3000, replace=False))
+    sel = np.sort(rng.choice(len(knn), 300 if "sparse" in assembly else 3000, replace=False))
     n = rng.normal(size=(len(sel), 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     r, rw = rng.normal(size=len(sel)) * 0.01, rng.uniform(0.2, 1.0, len(sel))

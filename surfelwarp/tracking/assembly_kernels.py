@@ -1,0 +1,91 @@
+"""The compiled sums of the depth-like terms' normal equations (assembly.point_blocks): each
+correspondence's 8x8 product summed into its node pairs' slots, and the slots' blocks D A D^T.
+assembly.point_blocks_reference is the numpy form the tests compare them with."""
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from surfelwarp.tracking.blend_jacobian import residual_row
+
+BLOCKS_CHUNK = 2048     # node pairs per parallel task of sandwich
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def point_sums_split(sel, b, signed, points, normals, r, w, knn, slots, double, pair_s, pair_t, compact, A, e,
+                     tasks):
+    """_point_sums over `tasks` consecutive parts of sel, each into its own sums (a thread each),
+    added in order."""
+    n = len(sel)
+    more_A = np.zeros((tasks - 1, A.shape[0], A.shape[1]))
+    more_e = np.zeros((tasks - 1, e.shape[0], e.shape[1]))
+    for t in numba.prange(tasks):
+        lo, hi = n * t // tasks, n * (t + 1) // tasks
+        if t == 0:
+            _point_sums(sel[lo:hi], b, signed, points, normals[lo:hi], r[lo:hi], w[lo:hi], knn, slots, double,
+                        pair_s, pair_t, compact, A, e)
+        else:
+            _point_sums(sel[lo:hi], b, signed, points, normals[lo:hi], r[lo:hi], w[lo:hi], knn, slots, double,
+                        pair_s, pair_t, compact, more_A[t - 1], more_e[t - 1])
+    for t in range(tasks - 1):
+        A += more_A[t]
+        e += more_e[t]
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def sandwich(D, lo, hi, A, sym, out):
+    # Each block alone: the split over threads changes no bit of the output.
+    for t in numba.prange((len(lo) + BLOCKS_CHUNK - 1) // BLOCKS_CHUNK):
+        _sandwich_range(D, lo, hi, A, sym, out, t * BLOCKS_CHUNK, min(len(lo), (t + 1) * BLOCKS_CHUNK))
+
+
+@numba.njit(cache=True, nogil=True)
+def _sandwich_range(D, lo, hi, A, sym, out, start, end):
+    DA = np.empty((6, 8))
+    for n in range(start, end):
+        a, b = lo[n], hi[n]
+        for i in range(6):
+            for j in range(8):
+                acc = 0.0
+                for m in range(8):
+                    acc += D[a, i, m] * A[n, sym[m, j]]
+                DA[i, j] = acc
+        for i in range(6):
+            for j in range(6):
+                acc = 0.0
+                for m in range(8):
+                    acc += DA[i, m] * D[b, j, m]
+                out[n, i, j] = acc
+
+
+@numba.njit(cache=True, nogil=True)
+def _point_sums(sel, b, signed, points, normals, r, w, knn, slots, double, pair_s, pair_t, compact, A, e):
+    """A[slot] and e[node] summed over the surfels sel; `compact` maps slots to rows of A
+    (empty: the slots are the rows)."""
+    rows = np.empty(8)
+    Q = np.empty(36)
+    k = knn.shape[1]
+    for c in range(len(sel)):
+        i = sel[c]
+        residual_row(b[i], points[0, i], points[1, i], points[2, i], normals[c, 0], normals[c, 1], normals[c, 2],
+                     rows)
+        q = 0
+        for a in range(8):
+            for a2 in range(a, 8):
+                Q[q] = rows[a] * rows[a2]
+                q += 1
+        for p in range(len(pair_s)):
+            coef = w[c] * signed[i, pair_s[p]] * signed[i, pair_t[p]]
+            if double[i, p]:
+                coef *= 2.0
+            slot = slots[i, p]
+            if len(compact):
+                slot = compact[slot]
+            for q in range(36):
+                A[slot, q] += coef * Q[q]
+        wr = w[c] * r[c]
+        for s in range(k):
+            g = signed[i, s] * wr
+            node = knn[i, s]
+            for a in range(8):
+                e[node, a] += g * rows[a]
