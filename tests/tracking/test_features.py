@@ -135,6 +135,17 @@ def test_a_wrong_match_breaks_local_rigidity():
     assert keep[right].mean() > 0.95
 
 
+def test_matches_without_neighbours_within_the_radius_are_not_kept():
+    rng = np.random.default_rng(2)
+    cluster = rng.uniform(-0.02, 0.02, (60, 3)) + [0, 0, 1]
+    lone = np.array([[0.5, 0.0, 1.0], [-0.5, 0.0, 1.0], [0.0, 0.5, 1.2]])   # 0.5 m from any other
+    previous = np.vstack([cluster, lone]).astype(np.float32)               # float32 in, as lifted maps
+    current = previous + np.float32([0.01, 0.0, 0.0])
+    keep = locally_rigid(previous, current, FeatureParams())
+    assert keep[:60].all() and not keep[60:].any()
+    assert not locally_rigid(previous[:1], current[:1], FeatureParams()).any()
+
+
 def test_no_texture_and_no_depth_give_no_features():
     flat = np.full((480, 640, 3), 128, np.uint8)
     _, _, valid = textured_plane()
