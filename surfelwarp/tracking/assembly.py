@@ -237,6 +237,7 @@ _EVERY_SLOT = np.zeros(0, np.int64)     # point_sums' slot map meaning "as they 
 # Calls of CHUNK or more correspondences sum TASKS parts apart, a thread each, then add them.
 # Fixed, so that the order of the sums (every bit of the blocks) does not depend on the cores.
 TASKS = 2
+BLOCKS_CHUNK = 2048     # node pairs a thread's task in the blocks D A D^T
 
 
 def _sums_into(pattern, sel, b, signed, points, normals, r, w, compact, A):
@@ -253,7 +254,7 @@ def _blocks_from_sums(lo, hi, D, A, e):
     """Blocks D_lo A D_hi^T of the summed symmetric 8x8 products A (one row per pair lo, hi)
     and the gradient D e: compiled, as numpy's batched 6x8x8 products cost as much as the sums."""
     blocks = np.empty((len(lo), 6, 6))
-    sandwich(np.ascontiguousarray(D, np.float64), lo, hi, A, _SYM8.reshape(8, 8), blocks)
+    sandwich(np.ascontiguousarray(D, np.float64), lo, hi, A, _SYM8.reshape(8, 8), blocks, BLOCKS_CHUNK)
     return blocks, np.einsum("nij,nj->ni", D, e)
 
 

@@ -8,8 +8,6 @@ import numpy as np
 
 from surfelwarp.tracking.blend_jacobian import residual_row
 
-BLOCKS_CHUNK = 2048     # node pairs per parallel task of sandwich
-
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def point_sums_split(sel, b, signed, points, normals, r, w, knn, slots, double, pair_s, pair_t, compact, A, e,
@@ -33,10 +31,11 @@ def point_sums_split(sel, b, signed, points, normals, r, w, knn, slots, double, 
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def sandwich(D, lo, hi, A, sym, out):
-    # Each block alone: the split over threads changes no bit of the output.
-    for t in numba.prange((len(lo) + BLOCKS_CHUNK - 1) // BLOCKS_CHUNK):
-        _sandwich_range(D, lo, hi, A, sym, out, t * BLOCKS_CHUNK, min(len(lo), (t + 1) * BLOCKS_CHUNK))
+def sandwich(D, lo, hi, A, sym, out, chunk):
+    """Blocks D_lo A D_hi^T into out, `chunk` node pairs a task: each block alone, so the split
+    over threads changes no bit of the output."""
+    for t in numba.prange((len(lo) + chunk - 1) // chunk):
+        _sandwich_range(D, lo, hi, A, sym, out, t * chunk, min(len(lo), (t + 1) * chunk))
 
 
 @numba.njit(cache=True, nogil=True)

@@ -10,7 +10,7 @@ from surfelwarp.geometry.se3 import se3_exp
 @pytest.fixture
 def blend_case():
     rng = np.random.default_rng(4)
-    m, n, k = 40, 3000, 4
+    m, n, k = 40, 10000, 4     # 10000: three of blend_apply's parallel tasks, the last one partial
     xi = rng.normal(size=(m, 6)) * [0.3, 0.3, 0.3, 0.05, 0.05, 0.05]
     xi[::3, 2] += np.pi * 0.95            # turns near 180 degrees: the antipodal fix flips signs
     dqs = dq_from_transform(se3_exp(xi))

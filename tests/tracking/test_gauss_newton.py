@@ -400,10 +400,12 @@ def test_factored_normal_equations_equal_the_generic_ones(problem, assembly, mon
     from surfelwarp.tracking import assembly as assembly_module
     from surfelwarp.tracking.assembly import BlockPattern
     # compiled, its numpy reference, the compiled one on the touched pairs alone, and both with
-    # the pairs summed in three parts (as large calls are, in TASKS parts)
+    # the pairs summed in three parts (as large calls are, in TASKS parts) and the blocks formed
+    # in tasks of 7
     if "split" in assembly:
         monkeypatch.setattr(assembly_module, "CHUNK", 64)
         monkeypatch.setattr(assembly_module, "TASKS", 3)
+        monkeypatch.setattr(assembly_module, "BLOCKS_CHUNK", 7)
     name = assembly.replace("split", "point_blocks")
     point_blocks = _sparse_as_dense if "sparse" in assembly else getattr(assembly_module, name)
     from surfelwarp.tracking.blend_jacobian import twist_dual_quaternions
