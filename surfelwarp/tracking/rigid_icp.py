@@ -157,8 +157,8 @@ def _pairs(obs_v, obs_n, model_v, model_n, model_valid, model_w, weighted, T, T_
         counts[t] = _pairs_range(obs_v, obs_n, model_v, model_n, model_valid, model_w, weighted, T, T_wm, c,
                                  width, height, out_p, out_n, out_r, out_w, t * PAIRS_CHUNK,
                                  min(n, (t + 1) * PAIRS_CHUNK))
-    k = 0
-    for t in range(tasks):
+    k = counts[0] if tasks else 0      # the first task's pairs are in place
+    for t in range(1, tasks):
         start = t * PAIRS_CHUNK
         for j in range(start, start + counts[t]):
             for a in range(3):

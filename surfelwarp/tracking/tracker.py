@@ -66,8 +66,7 @@ class TrackingParams:
     colour_pose: bool = True
 
     CHOICES = {"camera": CAMERAS}
-    ZERO_OK = {"released_rigid_weight", "min_still_share"}
-    UNIT = {"released_rigid_weight", "min_still_share"}
+    ZERO_OK = UNIT = {"released_rigid_weight", "min_still_share"}
 
 
 @dataclass(frozen=True)
@@ -181,9 +180,14 @@ class Tracker:
             return None
         knn, weights = surfels.knn[matches.index], surfels.weights[matches.index]
         world, _ = warp(matches.ref_points, None, knn, weights, field)
-        floor = p.released_rigid_weight
-        still = floor + (1.0 - floor) * self.stillness(knn, weights)
+        still = self._rigid_weight(self.stillness(knn, weights))
         return PointPairs(matches.target_points, world, matches.weights * still)
+
+    def _rigid_weight(self, stillness: np.ndarray) -> np.ndarray:
+        """A point's weight in rigid ICP by its stillness (0-1): a released point (0) keeps
+        released_rigid_weight, for the depth maps and the colour pairs alike."""
+        floor = self.params.released_rigid_weight
+        return floor + (1.0 - floor) * stillness
 
     def rigid(self, model_vertex: np.ndarray, model_normal: np.ndarray, obs: CameraObservation,
               stillness: np.ndarray | None = None,
@@ -200,8 +204,7 @@ class Tracker:
         weight, share = None, 1.0
         if stillness is not None and np.nanmin(stillness, initial=1.0) < 1.0:
             share = float(np.nanmean(stillness))
-            floor = p.released_rigid_weight
-            weight = np.where(np.isnan(stillness), 0.0, floor + (1.0 - floor) * stillness).astype(np.float32)
+            weight = np.where(np.isnan(stillness), 0.0, self._rigid_weight(stillness)).astype(np.float32)
         self._held, self._camera_moves = None, p.camera == "moving" and share >= p.min_still_share
         # The colour pairs inform the camera's pose; where it is held, ICP's motion is the
         # scene's, only the non-rigid solve's second start, and they are left to that solve.
