@@ -4,7 +4,8 @@ SurfelWarp (and with --compare-with dynamicfusion the baseline, on the same fram
 fresh process as `compare` runs it; from its metrics.json the benchmark prints, as markdown:
 per-stage medians (frames after the first, which only initialises), ms per 100k surfels of
 every stage at three model sizes (the frames in thirds by surfel count), bytes per surfel of the
-whole surfel model (surfel arrays and warp field), and the ratios DynamicFusion / SurfelWarp per
+whole surfel model (surfel arrays and warp field), the colour stage's share of a frame (with
+colour), and the ratios DynamicFusion / SurfelWarp per
 frame and in the model update (every stage after the shared tracker). With --open3d, Open3D's
 dense SLAM (open3d.t.pipelines.slam on the CPU, depth only) tracks and fuses the same frames as
 a reference for what a compiled CPU pipeline does per frame.
@@ -65,6 +66,29 @@ def memory_line(metrics: dict) -> str | None:
             f"{MEMORY_TARGET_BYTES}-byte target); peak RSS {metrics['summary']['peak_rss_mb']:.0f} MiB.")
 
 
+COLOUR_TARGET_SHARE = 0.2      # of a frame, for the colour terms (issue 19)
+
+
+def colour_line(metrics: dict) -> str | None:
+    """The colour stage's median share of the frame (frames after the first), if it ran. It
+    leaves out what colour adds to the other stages: the feature term in the non-rigid solve,
+    the colour pairs in rigid ICP, the colour image's reading and fusion. On twist-limb at
+    a2427a6 (40 frames) a frame took 945 ms with colour and 612 without: the stage 252 ms (27 %),
+    everything colour adds 333 ms (35 %)."""
+    frames, seconds = stage_seconds(metrics)
+    later = slice(1, None) if len(frames) > 1 else slice(None)
+    features = seconds.get("features")
+    if features is None or not features[later].any():
+        return None
+    totals = np.array([f["seconds"]["total"] for f in metrics["frames"]])[later]
+    share = float(np.median(features[later] / np.maximum(totals, 1e-12)))
+    verdict = "within" if share <= COLOUR_TARGET_SHARE else "above"
+    return (f"Colour: the `features` stage (detection, matching, flow, refinement, checks) takes "
+            f"{1000 * np.median(features[later]):.0f} ms, **{100 * share:.1f} % of a frame** (median; {verdict} "
+            f"the {100 * COLOUR_TARGET_SHARE:.0f} % target). Not counted: the feature term in the non-rigid "
+            f"solve and the colour pairs in rigid ICP.")
+
+
 def run_open3d(spec: CompareSpec, voxel_m: float = OPEN3D_VOXEL_M) -> Open3DResult:
     """Open3D's dense SLAM on the spec's frames (depth only: the colour is a constant); ImportError
     when open3d is not installed."""
@@ -115,6 +139,9 @@ def bench(spec: CompareSpec, compare_with: str | None = None, open3d: bool = Fal
     memory = memory_line(metrics["surfelwarp"])
     if memory:
         lines += [memory, ""]
+    colour = colour_line(metrics["surfelwarp"])
+    if colour:
+        lines += [colour, ""]
     if compare_with:
         lines += speed_lines(metrics)
     if open3d:

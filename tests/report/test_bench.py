@@ -1,11 +1,12 @@
-"""`surfelwarp bench`: per-stage medians, cost per 100k surfels at three model sizes, bytes per surfel."""
+"""`surfelwarp bench`: per-stage medians, cost per 100k surfels at three model sizes, bytes per surfel,
+the colour stage's share."""
 import subprocess
 import sys
 
 import pytest
 
 from surfelwarp.data_tools import synth
-from surfelwarp.report.bench import memory_line, stage_table
+from surfelwarp.report.bench import colour_line, memory_line, stage_table
 
 
 def fake_run(surfels, seconds_per_100k):
@@ -32,6 +33,20 @@ def test_memory_line_states_bytes_per_surfel_against_the_target():
     metrics = fake_run([1000], 0.01)
     metrics["frames"][0]["model_bytes"] = 300_000
     assert "above the 208-byte target" in memory_line(metrics)
+
+
+def test_colour_line_gives_the_colour_stage_share_of_a_frame():
+    metrics = fake_run([1000] * 5, 0.0)
+    assert colour_line(metrics) is None                    # no colour: no line
+    for i, f in enumerate(metrics["frames"]):
+        # the first frame (initialisation) is left out; then 25, 30, 10 and 40 % of a frame
+        f["seconds"]["features"] = [0.5, 0.025, 0.06, 0.01, 0.08][i]
+        f["seconds"]["total"] = [0.5, 0.1, 0.2, 0.1, 0.2][i]
+    line = colour_line(metrics)
+    assert "**27.5 % of a frame**" in line and "above the 20 % target" in line and "takes 42 ms" in line
+    for f in metrics["frames"]:
+        f["seconds"]["features"] = 0.1 * f["seconds"]["total"]
+    assert "**10.0 % of a frame**" in colour_line(metrics) and "within the 20 % target" in colour_line(metrics)
 
 
 @pytest.mark.slow
