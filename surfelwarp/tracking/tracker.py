@@ -225,13 +225,19 @@ class Tracker:
         if self.params.nonrigid.feature_weight > 0:
             self.colour.new_reference(obs, self.T_camera_to_world, ids, ref_position)
 
+    @property
+    def uses_features(self) -> bool:
+        """Whether `features` matches colour (the feature term is on): the model view it reads
+        need not draw the model's colour otherwise."""
+        return self.params.nonrigid.feature_weight > 0
+
     def features(self, obs: CameraObservation, model: ModelView | None = None,
                  field: WarpField | None = None) -> AnchoredMatches | None:
         """Colour correspondences of `obs` on the solved surfels (colour.py), predicted at the
         last pose; call before `rigid` (which takes them with colour_pairs). With no model (the
         first frame) it only remembers obs. None without colour or with the feature term off."""
         self._feature_count = None
-        if self.params.nonrigid.feature_weight <= 0:
+        if not self.uses_features:
             return None
         matches = self.colour.matches(obs, model, field, self.T_camera_to_world)
         self._feature_count = None if matches is None else len(matches)

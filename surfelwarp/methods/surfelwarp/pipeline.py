@@ -238,10 +238,11 @@ class SurfelWarpMethod:
         return int(drop.sum())
 
     def _model_view(self, maps, visible: np.ndarray) -> ModelView:
-        """The model as the feature stage reads it, with its fused colour drawn on the solver maps."""
+        """The model as the feature stage reads it, with its fused colour drawn on the solver maps
+        (if the features are matched: drawing it takes ~15 ms a frame on a 640x480 room)."""
         m = self.model
         color = drawn = None
-        if self.has_color:
+        if self.has_color and self.tracker.uses_features:
             color, drawn = colour_map(maps, m.color_weight > 0, m.color)
         return ModelView(maps.index, visible, m.live_position, m.ids, m.knn, m.weights, maps.vertex, color, drawn)
 

@@ -10,6 +10,7 @@ from surfelwarp.data_tools import meshes
 from surfelwarp.data_tools.render import MeshRenderer
 from surfelwarp.data_tools.synth import default_intrinsics
 from surfelwarp.data_tools.texture import shade
+from surfelwarp.methods.surfelwarp import pipeline
 from surfelwarp.methods.surfelwarp.pipeline import SurfelWarpMethod, SurfelWarpParams
 from surfelwarp.preprocess import preprocess
 
@@ -42,9 +43,14 @@ def track(intr, observations, feature_weight: float):
 
 
 @pytest.mark.parametrize("feature_weight", [0.0, 100.0])
-def test_colour_sees_a_slide_depth_cannot(gl, feature_weight):
+def test_colour_sees_a_slide_depth_cannot(gl, feature_weight, monkeypatch):
     intr, observations = sliding_plane(4)
+    drawn = []
+    real = pipeline.colour_map
+    monkeypatch.setattr(pipeline, "colour_map", lambda *a, **k: drawn.append(1) or real(*a, **k))
     moved, record = track(intr, observations, feature_weight)
+    # the model's colour is drawn for the features only (3 frames after the first), not without them
+    assert len(drawn) == (3 if feature_weight > 0 else 0)
     expected = 3 * STEP
     if feature_weight == 0:
         assert np.abs(moved).max() < 1e-3                     # depth alone: still
