@@ -4,11 +4,11 @@ SurfelWarp (and with --compare-with dynamicfusion the baseline, on the same fram
 fresh process as `compare` runs it; from its metrics.json the benchmark prints, as markdown:
 per-stage medians (frames after the first, which only initialises), ms per 100k surfels of
 every stage at three model sizes (the frames in thirds by surfel count), bytes per surfel of the
-whole surfel model (surfel arrays and warp field), the colour stage's share of a frame (with
-colour), and the ratios DynamicFusion / SurfelWarp per
-frame and in the model update (every stage after the shared tracker). With --open3d, Open3D's
-dense SLAM (open3d.t.pipelines.slam on the CPU, depth only) tracks and fuses the same frames as
-a reference for what a compiled CPU pipeline does per frame.
+whole surfel model (surfel arrays and warp field), the colour stage's share of a frame (where
+colour features were matched), and the ratios DynamicFusion / SurfelWarp per frame and in the
+model update (every stage after the shared tracker). With --open3d, Open3D's dense SLAM
+(open3d.t.pipelines.slam on the CPU, depth only) tracks and fuses the same frames as a reference
+for what a compiled CPU pipeline does per frame.
 
 The machine is shared and noisy: compare ratios measured in one run, not times across runs.
 """
@@ -70,7 +70,9 @@ COLOUR_TARGET_SHARE = 0.2      # of a frame, for the colour terms (issue 19)
 
 
 def colour_line(metrics: dict) -> str | None:
-    """The colour stage's median share of the frame (frames after the first), if it ran. It
+    """The colour stage's median share of the frame (frames after the first), if colour
+    features were matched (feature_matches in metrics.json; none without colour, or with the
+    feature term off). It
     leaves out what colour adds to the other stages: the feature term in the non-rigid solve,
     the colour pairs in rigid ICP, the colour image's reading and fusion. On twist-limb at
     a2427a6 (40 frames) a frame took 945 ms with colour and 612 without: the stage 252 ms (27 %),
@@ -78,7 +80,7 @@ def colour_line(metrics: dict) -> str | None:
     frames, seconds = stage_seconds(metrics)
     later = slice(1, None) if len(frames) > 1 else slice(None)
     features = seconds.get("features")
-    if features is None or not features[later].any():
+    if features is None or all(f.get("feature_matches") is None for f in metrics["frames"]):
         return None
     totals = np.array([f["seconds"]["total"] for f in metrics["frames"]])[later]
     share = float(np.median(features[later] / np.maximum(totals, 1e-12)))

@@ -222,7 +222,7 @@ class Tracker:
     def new_reference(self, obs: CameraObservation, ids: np.ndarray, ref_position: np.ndarray) -> None:
         """The reference frame's colour features on the reference model (colour.py); call with
         each new reference (the first frame, every reinitialisation)."""
-        if self.params.nonrigid.feature_weight > 0:
+        if self.uses_features:
             self.colour.new_reference(obs, self.T_camera_to_world, ids, ref_position)
 
     @property

@@ -38,7 +38,11 @@ def test_memory_line_states_bytes_per_surfel_against_the_target():
 def test_colour_line_gives_the_colour_stage_share_of_a_frame():
     metrics = fake_run([1000] * 5, 0.0)
     assert colour_line(metrics) is None                    # no colour: no line
+    for f in metrics["frames"]:
+        f["seconds"]["features"], f["feature_matches"] = 0.002, None
+    assert colour_line(metrics) is None                    # the feature term off: no line either
     for i, f in enumerate(metrics["frames"]):
+        f["feature_matches"] = None if i == 0 else 500
         # the first frame (initialisation) is left out; then 25, 30, 10 and 40 % of a frame
         f["seconds"]["features"] = [0.5, 0.025, 0.06, 0.01, 0.08][i]
         f["seconds"]["total"] = [0.5, 0.1, 0.2, 0.1, 0.2][i]
