@@ -36,16 +36,22 @@ class Open3DResult:
     voxel_m: float
 
 
-def stage_table(metrics: dict) -> list[str]:
-    """Per-stage median ms, and ms per 100k surfels at three model sizes (SurfelWarp only)."""
+def _after_first(metrics: dict) -> tuple[slice, dict[str, np.ndarray], np.ndarray]:
+    """The frames after the first (which only initialises; all of one frame), every stage's
+    seconds over all frames and the frame totals over those after the first."""
     frames, seconds = stage_seconds(metrics)
     later = slice(1, None) if len(frames) > 1 else slice(None)
+    return later, seconds, np.array([f["seconds"]["total"] for f in metrics["frames"]])[later]
+
+
+def stage_table(metrics: dict) -> list[str]:
+    """Per-stage median ms, and ms per 100k surfels at three model sizes (SurfelWarp only)."""
+    later, seconds, totals = _after_first(metrics)
     surfels = np.array([f.get("surfels") or 0 for f in metrics["frames"]], float)[later]
     thirds = [t for t in np.array_split(np.argsort(surfels, kind="stable"), 3) if len(t)] if surfels.any() else []
     head = "| stage | median ms |" + "".join(f" ms/100k surfels at {np.median(surfels[t]) / 1000:.0f}k |"
                                            for t in thirds)
     lines = [head, "|---|---:|" + "---:|" * len(thirds)]
-    totals = np.array([f["seconds"]["total"] for f in metrics["frames"]])[later]
     for stage, s in list(seconds.items()) + [("total", totals)]:
         s = s if stage == "total" else s[later]
         if not s.any():
@@ -72,17 +78,14 @@ COLOUR_TARGET_SHARE = 0.2      # of a frame, for the colour terms (issue 19)
 def colour_line(metrics: dict) -> str | None:
     """The colour stage's median share of the frame (frames after the first), if colour
     features were matched (feature_matches in metrics.json; none without colour, or with the
-    feature term off). It
-    leaves out what colour adds to the other stages: the feature term in the non-rigid solve,
-    the colour pairs in rigid ICP, the colour image's reading and fusion. On twist-limb at
-    a2427a6 (40 frames) a frame took 945 ms with colour and 612 without: the stage 252 ms (27 %),
-    everything colour adds 333 ms (35 %)."""
-    frames, seconds = stage_seconds(metrics)
-    later = slice(1, None) if len(frames) > 1 else slice(None)
+    feature term off). It leaves out what colour adds to the other stages: the feature term in
+    the non-rigid solve, the colour pairs in rigid ICP, the colour image's reading and fusion.
+    On twist-limb at a2427a6 (40 frames) a frame took 945 ms with colour and 612 without: the
+    stage 252 ms (27 %), everything colour adds 333 ms (35 %)."""
+    later, seconds, totals = _after_first(metrics)
     features = seconds.get("features")
     if features is None or all(f.get("feature_matches") is None for f in metrics["frames"]):
         return None
-    totals = np.array([f["seconds"]["total"] for f in metrics["frames"]])[later]
     share = float(np.median(features[later] / np.maximum(totals, 1e-12)))
     verdict = "within" if share <= COLOUR_TARGET_SHARE else "above"
     return (f"Colour: the `features` stage (detection, matching, flow, refinement, checks) takes "
