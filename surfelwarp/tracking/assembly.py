@@ -220,7 +220,8 @@ def point_blocks(pattern, sel, b, signed, points, normals, D, r, w):
 
 def sparse_point_blocks(pattern, sel, b, signed, points, normals, D, r, w):
     """point_blocks on the node pairs the surfels `sel` touch alone: (their slots, their blocks
-    (len(slots), 6, 6), the gradient). For the sparse terms (features, free space): on a room
+    (len(slots), 6, 6), the gradient); normals (G, n, 3) and r (G, n) give each correspondence G
+    rows (a feature's three axes). For the sparse terms (features, free space): on a room
     they touch a few % of ~50k pairs, and pattern-sized arrays (zeroed, sandwiched, added:
     ~12 ms a call on 7-Scenes) cost them more than their sums."""
     touched = np.zeros(pattern.n_upper, bool)
@@ -241,10 +242,13 @@ BLOCKS_CHUNK = 2048     # node pairs a thread's task in the blocks D A D^T
 
 
 def _sums_into(pattern, sel, b, signed, points, normals, r, w, compact, A):
+    """normals (n, 3) and r (n,): a row a correspondence; (G, n, 3) and (G, n): G rows each."""
     e = np.zeros((pattern.num_nodes, 8))
+    n = len(sel)
     point_sums_split(np.ascontiguousarray(sel, np.int64), np.ascontiguousarray(b, np.float64),
                      np.ascontiguousarray(signed, np.float64), np.ascontiguousarray(points, np.float64),
-                     np.ascontiguousarray(normals, np.float64), np.ascontiguousarray(r, np.float64),
+                     np.ascontiguousarray(np.reshape(normals, (-1, n, 3)), np.float64),
+                     np.ascontiguousarray(np.reshape(r, (-1, n)), np.float64),
                      np.ascontiguousarray(w, np.float64), pattern.knn, pattern.slots, pattern.double,
                      pattern.pair_s, pattern.pair_t, compact, A, e, TASKS if len(sel) >= CHUNK else 1)
     return e

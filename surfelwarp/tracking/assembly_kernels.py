@@ -1,6 +1,9 @@
 """The compiled sums of the depth-like terms' normal equations (assembly.point_blocks): each
 correspondence's 8x8 product summed into its node pairs' slots, and the slots' blocks D A D^T.
-assembly.point_blocks_reference is the numpy form the tests compare them with."""
+A correspondence has G rows (normals (G, n, 3), residuals (G, n)), all on its surfel's blend and
+summed into one 8x8 product before its node pairs': a colour feature's three axes cost one pass
+over the pairs, not three. assembly.point_blocks_reference is the numpy form the tests compare
+them with (one row a correspondence)."""
 from __future__ import annotations
 
 import numba
@@ -20,11 +23,11 @@ def point_sums_split(sel, b, signed, points, normals, r, w, knn, slots, double, 
     for t in numba.prange(tasks):
         lo, hi = n * t // tasks, n * (t + 1) // tasks
         if t == 0:
-            _point_sums(sel[lo:hi], b, signed, points, normals[lo:hi], r[lo:hi], w[lo:hi], knn, slots, double,
-                        pair_s, pair_t, compact, A, e)
+            _point_sums(sel[lo:hi], b, signed, points, normals[:, lo:hi], r[:, lo:hi], w[lo:hi], knn, slots,
+                        double, pair_s, pair_t, compact, A, e)
         else:
-            _point_sums(sel[lo:hi], b, signed, points, normals[lo:hi], r[lo:hi], w[lo:hi], knn, slots, double,
-                        pair_s, pair_t, compact, more_A[t - 1], more_e[t - 1])
+            _point_sums(sel[lo:hi], b, signed, points, normals[:, lo:hi], r[:, lo:hi], w[lo:hi], knn, slots,
+                        double, pair_s, pair_t, compact, more_A[t - 1], more_e[t - 1])
     for t in range(tasks - 1):
         A += more_A[t]
         e += more_e[t]
@@ -59,19 +62,23 @@ def _sandwich_range(D, lo, hi, A, sym, out, start, end):
 
 @numba.njit(cache=True, nogil=True)
 def _point_sums(sel, b, signed, points, normals, r, w, knn, slots, double, pair_s, pair_t, compact, A, e):
-    """A[slot] and e[node] summed over the surfels sel; `compact` maps slots to rows of A
-    (empty: the slots are the rows)."""
-    rows = np.empty(8)
+    """A[slot] and e[node] summed over the surfels sel, each with its G rows; `compact` maps
+    slots to rows of A (empty: the slots are the rows)."""
+    groups = normals.shape[0]
+    rows = np.empty((groups, 8))
     Q = np.empty(36)
     k = knn.shape[1]
     for c in range(len(sel)):
         i = sel[c]
-        residual_row(b[i], points[0, i], points[1, i], points[2, i], normals[c, 0], normals[c, 1], normals[c, 2],
-                     rows)
+        for h in range(groups):
+            residual_row(b[i], points[0, i], points[1, i], points[2, i], normals[h, c, 0], normals[h, c, 1],
+                         normals[h, c, 2], rows[h])
         q = 0
         for a in range(8):
             for a2 in range(a, 8):
-                Q[q] = rows[a] * rows[a2]
+                Q[q] = rows[0, a] * rows[0, a2]
+                for h in range(1, groups):
+                    Q[q] += rows[h, a] * rows[h, a2]
                 q += 1
         for p in range(len(pair_s)):
             coef = w[c] * signed[i, pair_s[p]] * signed[i, pair_t[p]]
@@ -82,9 +89,10 @@ def _point_sums(sel, b, signed, points, normals, r, w, knn, slots, double, pair_
                 slot = compact[slot]
             for q in range(36):
                 A[slot, q] += coef * Q[q]
-        wr = w[c] * r[c]
-        for s in range(k):
-            g = signed[i, s] * wr
-            node = knn[i, s]
-            for a in range(8):
-                e[node, a] += g * rows[a]
+        for h in range(groups):
+            wr = w[c] * r[h, c]
+            for s in range(k):
+                g = signed[i, s] * wr
+                node = knn[i, s]
+                for a in range(8):
+                    e[node, a] += g * rows[h, a]

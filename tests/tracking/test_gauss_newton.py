@@ -434,6 +434,38 @@ def test_factored_normal_equations_equal_the_generic_ones(problem, assembly, mon
     assert np.allclose(diag, H.reshape(m, 6, m, 6)[np.arange(m), :, np.arange(m)])
 
 
+@pytest.mark.parametrize("assembly", ["point_blocks", "sparse", "sparse split"])
+def test_grouped_rows_equal_the_rows_one_by_one(problem, assembly, monkeypatch):
+    """Three rows a correspondence (a colour feature's axes), summed into one product before its
+    node pairs', give the numpy reference's blocks of the same rows as separate correspondences."""
+    from surfelwarp.geometry.dual_quaternion import _components, dq_blend_indexed
+    from surfelwarp.tracking import assembly as assembly_module
+    from surfelwarp.tracking.assembly import BlockPattern, point_blocks_reference
+    from surfelwarp.tracking.blend_jacobian import twist_dual_quaternions
+    if "split" in assembly:
+        monkeypatch.setattr(assembly_module, "CHUNK", 64)
+        monkeypatch.setattr(assembly_module, "TASKS", 3)
+    point_blocks = _sparse_as_dense if "sparse" in assembly else assembly_module.point_blocks
+    rng = np.random.default_rng(8)
+    field = turned_field(problem)
+    knn, w = problem.knn.astype(np.int64), problem.weights.astype(np.float64)
+    sel = np.sort(rng.choice(len(knn), 300, replace=False))
+    n = rng.normal(size=(3, len(sel), 3))
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    r, rw = rng.normal(size=(3, len(sel))) * 0.01, rng.uniform(0.2, 1.0, len(sel))
+    pattern = BlockPattern(field.num_nodes, field.graph, knn)
+    dq = field.dual_quaternions()
+    b, signed = dq_blend_indexed(dq, knn, w)
+    args = (b, signed, _components(problem.points.astype(np.float64)))
+    D = twist_dual_quaternions(field, dq)
+    blocks, g = point_blocks(pattern, sel, *args, n, D, r, rw)
+    blocks_ref, g_ref = point_blocks_reference(pattern, np.tile(sel, 3), *args, n.reshape(-1, 3), D, r.reshape(-1),
+                                               np.tile(rw, 3))
+    assert np.abs(blocks_ref).max() > 0
+    assert np.allclose(blocks, blocks_ref, rtol=0, atol=1e-12 * np.abs(blocks_ref).max())
+    assert np.allclose(g, g_ref, rtol=0, atol=1e-12 * np.abs(g_ref).max())
+
+
 def test_pcg_step_agrees_with_the_direct_solve(problem):
     from surfelwarp.tracking.linear import solve_step_pcg
     rng = np.random.default_rng(7)

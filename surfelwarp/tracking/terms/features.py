@@ -6,8 +6,9 @@ the frame of the surface normal n at q_f: |d|_A^2 = share (n.d)^2 + |d - (n.d) n
 normal the depth term is far better (it sums every pixel; a feature's point is one noisy depth
 sample), so `feature_normal_share` (< 1) leaves that direction mostly to it; along the surface
 depth sees nothing and the features decide. Three point-to-plane rows a feature (n scaled by
-sqrt(share), two tangents), each with the data term's Jacobian for its axis
-(assembly.point_blocks). rho is Huber's: a wrong match that got through pulls with a bounded force.
+sqrt(share), two tangents), each with the data term's Jacobian for its axis, summed into one
+product before the feature's node pairs (assembly.sparse_point_blocks with three rows a
+correspondence). rho is Huber's: a wrong match that got through pulls with a bounded force.
 """
 from __future__ import annotations
 
@@ -48,8 +49,6 @@ class FeatureTerm(BaseTerm):
         T = np.asarray(T_camera_to_world, np.float64)
         self.target = np.array(rigid_components(T[:3, :3], T[:3, 3], np.asarray(matches.target_points, np.float64).T))
         self.axes = normal_frames(np.asarray(target_normals, np.float64) @ T[:3, :3].T, normal_share)   # (3, n, 3)
-        self.rows = np.tile(self.index, 3)
-        self.normals = self.axes.reshape(-1, 3)
 
     def residuals(self, at: Iterate) -> np.ndarray:
         """(3, n): the live feature points minus their targets along each feature's axes."""
@@ -64,8 +63,8 @@ class FeatureTerm(BaseTerm):
     def linearize(self, at: Iterate, system: NormalEquations) -> float:
         r = self.residuals(at)
         cost, w = robust(np.linalg.norm(r, axis=0), "huber", self.huber_m)
-        slots, blocks, g = sparse_point_blocks(system.pattern, self.rows, at.blends, at.signed, self.points,
-                                               self.normals, system.D, r.reshape(-1), np.tile(self.weight * w, 3))
+        slots, blocks, g = sparse_point_blocks(system.pattern, self.index, at.blends, at.signed, self.points,
+                                               self.axes, system.D, r, self.weight * w)
         system.add(g, upper=blocks, slots=slots)
         return float(np.sum(self.weight * cost))
 
