@@ -244,11 +244,11 @@ BLOCKS_CHUNK = 2048     # node pairs a thread's task in the blocks D A D^T
 def _sums_into(pattern, sel, b, signed, points, normals, r, w, compact, A):
     """normals (n, 3) and r (n,): a row a correspondence; (G, n, 3) and (G, n): G rows each."""
     e = np.zeros((pattern.num_nodes, 8))
-    n = len(sel)
+    groups = 1 if np.ndim(r) == 1 else len(r)
     point_sums_split(np.ascontiguousarray(sel, np.int64), np.ascontiguousarray(b, np.float64),
                      np.ascontiguousarray(signed, np.float64), np.ascontiguousarray(points, np.float64),
-                     np.ascontiguousarray(np.reshape(normals, (-1, n, 3)), np.float64),
-                     np.ascontiguousarray(np.reshape(r, (-1, n)), np.float64),
+                     np.ascontiguousarray(np.reshape(normals, (groups, len(sel), 3)), np.float64),
+                     np.ascontiguousarray(np.reshape(r, (groups, len(sel))), np.float64),
                      np.ascontiguousarray(w, np.float64), pattern.knn, pattern.slots, pattern.double,
                      pattern.pair_s, pattern.pair_t, compact, A, e, TASKS if len(sel) >= CHUNK else 1)
     return e

@@ -464,6 +464,8 @@ def test_grouped_rows_equal_the_rows_one_by_one(problem, assembly, monkeypatch):
     assert np.abs(blocks_ref).max() > 0
     assert np.allclose(blocks, blocks_ref, rtol=0, atol=1e-12 * np.abs(blocks_ref).max())
     assert np.allclose(g, g_ref, rtol=0, atol=1e-12 * np.abs(g_ref).max())
+    blocks, g = point_blocks(pattern, sel[:0], *args, n[:, :0], D, r[:, :0], rw[:0])     # no correspondence
+    assert not np.any(blocks) and not np.any(g)
 
 
 def test_pcg_step_agrees_with_the_direct_solve(problem):
