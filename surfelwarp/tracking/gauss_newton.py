@@ -33,12 +33,19 @@ from surfelwarp.tracking.features import AnchoredMatches
 from surfelwarp.tracking.free_space import FreeSpace, SilhouetteParams
 from surfelwarp.tracking.linear import LINEAR_SOLVERS, solve_system
 from surfelwarp.tracking.terms import ROBUST, Iterate, Problem, build_terms, known_terms
-from surfelwarp.tracking.terms.regulariser import reg_residuals, regulariser_blocks
+from surfelwarp.tracking.terms.regulariser import reg_penalty, reg_residuals, regulariser_blocks
 
 
 @dataclass(frozen=True)
 class NonRigidParams:
     lambda_reg: float = 5.0            # SurfelWarp Table 1
+    reg_huber_m: float = 0.002         # the regulariser's Huber corner (DynamicFusion's psi_reg;
+                                       # 0: SurfelWarp's square): beyond it two nodes may part
+                                       # (fingers, a sheet's fold) at a bounded cost, so that the
+                                       # colour pairs at their own weight can move them (touch,
+                                       # seeds 0-2: 2.87 / 2.29 / 1.74 mm at feature_weight 10 with
+                                       # the square, 0.69 / 0.68 / 0.66 with a 2 mm corner; 1 mm:
+                                       # 0.56 on seed 0, release 4.95 against 4.01)
     max_iterations: int = 10           # SurfelWarp Sec. VIII
     distance_gate_m: float = 0.03      # pairs farther apart than this are not correspondences
     min_normal_cos: float = 0.7        # normals within ~45 deg; looser than fusion's 0.85
@@ -65,10 +72,12 @@ class NonRigidParams:
                                        # of 500 free nodes or more: nodes grouped by cells of this
                                        # many node radii, each moving rigidly (7-Scenes: ~105
                                        # instead of ~380 iterations a frame); 0: block-Jacobi alone
-    feature_weight: float = 100.0      # a colour feature (terms/features.py) against a depth pixel's
-                                       # weight of 1: there are ~1 in 200 as many, each 1-2 px
-                                       # sharp (measured on twist-limb, moving EPE at frame 10:
-                                       # 27.7 mm without, 11.8 at 10, 7.9 at 100); 0: off
+    feature_weight: float = 10.0       # a colour feature (terms/features.py) against a depth pixel's
+                                       # weight of 1: their inverse variances (a pair's ends differ
+                                       # by 0.3-0.45 mm along each axis on orbit, a depth pixel by
+                                       # ~1.4 mm along its ray) make it ~12; 100 pulled the still
+                                       # orbit 1.0 -> 1.8 mm off and held twist-limb's limb back
+                                       # (0.34 -> 0.52 mm); 0: off
     feature_huber_m: float = 0.01      # its Huber corner
     feature_normal_share: float = 0.1  # its weight along the surface normal, where depth is the
                                        # better judge, against along the surface (1: a distance)
@@ -84,7 +93,7 @@ class NonRigidParams:
     # without an anchor state, free space at weight 0) is left out.
     terms: tuple[str, ...] = ("depth", "features", "regulariser", "rest_anchors", "free_space")
 
-    ZERO_OK = {"lambda_reg", "max_iterations", "min_normal_cos", "stop_motion_m", "stop_energy_rel", "damping",
+    ZERO_OK = {"lambda_reg", "reg_huber_m", "max_iterations", "min_normal_cos", "stop_motion_m", "stop_energy_rel", "damping",
                "feature_weight", "feature_normal_share", "free_rings", "pcg_cell_radii"}
     UNIT = {"min_normal_cos", "stop_energy_rel", "pcg_rtol", "feature_normal_share"}
 
@@ -105,7 +114,8 @@ class NonRigidParams:
 class NonRigidResult:
     iterations: int                # Gauss-Newton steps solved
     energy: float                  # total E at the returned field (freshly associated)
-    reg_energy: float              # sum of squared regulariser residuals, m^2 (before lambda)
+    reg_energy: float              # the regulariser's penalties summed (squares within its Huber
+                                   # corner), m^2 (before lambda)
     correspondences: int           # at the returned field
     energies: tuple[float, ...]    # total E at the start of every iteration, then the final one
     converged: bool                # ended on a tiny update or energy decrease (not on the
@@ -315,7 +325,7 @@ def _result(solve: Solve, current: Iterate, free: np.ndarray, steps: int, energi
     alignment = measure(final.live.T, final.live_normals.T, pb.T_camera_to_world, vertex[..., 2], vertex,
                         pb.depth_valid, pb.intrinsics)
     return field, NonRigidResult(
-        iterations=steps, energy=total, reg_energy=float(np.sum(reg_residuals(field) ** 2)),
+        iterations=steps, energy=total, reg_energy=float(np.sum(reg_penalty(reg_residuals(field), pb.params.reg_huber_m)[0])),
         correspondences=len(pairs.index), energies=tuple(energies), converged=converged, node_support=support,
         released=anchors.released if anchors else None, silhouette_points=len(seen[1]) if seen else 0,
         alignment=alignment, lu_fallbacks=fallbacks + (anchors.lu_fallbacks if anchors else 0),

@@ -8,14 +8,14 @@ frame's camera); twists are (omega, v), rotation first (geometry/se3.py).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from surfelwarp.deform.hierarchy import Hierarchy, HierarchyParams, build_hierarchy, with_hierarchy
 from surfelwarp.deform.warp_field import WarpField, to_local, warp
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.geometry.se3 import fit_rigid, invert
+from surfelwarp.geometry.se3 import fit_rigid, invert, transform_points
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.anchors import AnchorParams, NodeAnchors, follow_motion, node_depth_m
 from surfelwarp.tracking.degeneracy import HeldDirections
@@ -64,6 +64,13 @@ class TrackingParams:
     # False: the pose from depth alone. (Beside the depth in every direction they cost orbit's
     # ATE, 0.41 -> 0.48 cm, and the shirt pair 2.9 mm.)
     colour_pose: bool = True
+    # Motion beyond the depth term's reach (the DeepDeform shirt pair: 20 cm between its two
+    # frames): when the colour pairs lie farther than this from where the last warp and the
+    # pose put them (median), a first solve led by them (at lead_feature_weight, with the plain
+    # squared regulariser, which carries their motion to the nodes between them) is the default
+    # solve's start.
+    lead_motion_m: float = 0.015
+    lead_feature_weight: float = 100.0
 
     CHOICES = {"camera": CAMERAS}
     ZERO_OK = UNIT = {"released_rigid_weight", "min_still_share"}
@@ -257,8 +264,9 @@ class Tracker:
             anchor = self.anchors.term(self.params.anchor, node_depth_m(field, self.T_camera_to_world),
                                        solve_field.num_nodes, self._held)
 
-        def solve(start: WarpField, T_camera_to_world: np.ndarray) -> tuple[WarpField, NonRigidResult]:
-            solved, result = solve_nonrigid(start, *model, *depth, T_camera_to_world, self.params.nonrigid, anchor,
+        def solve(start: WarpField, T_camera_to_world: np.ndarray, params: NonRigidParams = self.params.nonrigid
+                  ) -> tuple[WarpField, NonRigidResult]:
+            solved, result = solve_nonrigid(start, *model, *depth, T_camera_to_world, params, anchor,
                                             obs.beyond, self.free_space(obs, T_camera_to_world), matches)
             self._lu_fallbacks += result.lu_fallbacks
             return solved, result
@@ -267,6 +275,9 @@ class Tracker:
             """A second start's fit wins with a lower energy over about as many pairs."""
             return second.energy < result.energy and second.correspondences >= 0.9 * result.correspondences
 
+        if self._pairs_far(field, surfels, matches):
+            lead = replace(self.params.nonrigid, feature_weight=self.params.lead_feature_weight, reg_huber_m=0.0)
+            solve_field, _ = solve(solve_field, self.T_camera_to_world, lead)
         solved, result = solve(solve_field, self.T_camera_to_world)
         M = self._scene_motion
         if M is not None and (not result.converged or result.correspondences < 0.8 * len(surfels.positions)):
@@ -287,6 +298,16 @@ class Tracker:
             self.anchors = self.anchors.release(result.released)
         # The tree's upper levels only regularise; the warp nodes come first.
         return field.with_transforms(solved.transforms[:field.num_nodes]), result
+
+    def _pairs_far(self, field: WarpField, surfels: SurfelSet, matches: AnchoredMatches | None) -> bool:
+        """Whether the colour pairs lie, in the median, beyond lead_motion_m of where the field
+        and the pose put them."""
+        if matches is None or len(matches) == 0 or self.params.nonrigid.feature_weight <= 0:
+            return False
+        i = matches.index
+        live, _ = warp(matches.ref_points, None, surfels.knn[i], surfels.weights[i], field)
+        seen = transform_points(self.T_camera_to_world, matches.target_points)
+        return float(np.median(np.linalg.norm(live - seen, axis=1))) > self.params.lead_motion_m
 
     def counts(self, rigid: RigidResult, nonrigid: NonRigidResult) -> TrackingCounts:
         """The frame's counts, after `factor`."""

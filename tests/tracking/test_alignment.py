@@ -69,12 +69,14 @@ def test_windows_and_gates():
 
 
 def test_trigger_reads_both_fractions():
-    """A slid model keeps a small RMS: the fractions alone, with unexplained depth, trigger;
-    either alone does not."""
+    """A slid model keeps a small RMS: the fractions trigger. Model points without depth do
+    alone (fingers part, the surfels skinned to both stay between them, the depth explained);
+    unexplained depth alone does not (a part coming into view is appended)."""
     from surfelwarp.tracking.alignment import Alignment
     slid = Alignment(unsupported_fraction=0.3, unexplained_fraction=0.08, judged_points=1000, valid_pixels=1000)
     good = Alignment(0.02, 0.01, 1000, 1000)
     only_unsupported = Alignment(0.3, 0.01, 1000, 1000)
+    only_unexplained = Alignment(0.02, 0.08, 1000, 1000)
 
     def fired(alignment, frames=25):
         trigger, out = ReinitTrigger(ReinitParams()), []
@@ -84,5 +86,5 @@ def test_trigger_reads_both_fractions():
                 trigger.reset()                    # as a reinitialisation does
         return out
 
-    assert fired(good) == [] and fired(only_unsupported) == [] and fired(None) == []
-    assert fired(slid) == [9, 19]                  # min_interval_frames apart
+    assert fired(good) == [] and fired(only_unexplained) == [] and fired(None) == []
+    assert fired(slid) == [9, 19] and fired(only_unsupported) == [9, 19]    # min_interval_frames apart

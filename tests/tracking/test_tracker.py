@@ -125,3 +125,34 @@ def test_rigid_icp_without_pairs_keeps_the_pose_and_says_so():
     vertex = np.where(valid, obs.vertex_map @ T0[:3, :3].T + T0[:3, 3], 0).astype(np.float32)
     normal = np.where(valid, obs.normal_map @ T0[:3, :3].T, 0).astype(np.float32)
     assert obs.valid.sum() > 1000 and not tracker.counts(tracker.rigid(vertex, normal, obs), unsolved).rigid_pose_kept
+
+
+@pytest.mark.parametrize("lead_motion_m", [0.015, 10.0])
+def test_far_pairs_lead_the_solve(lead_motion_m):
+    """Known answer: the bumpy sheet slid 10 cm along itself, 13 colour pairs on it. Past the
+    depth term's 3 cm gate its pairs hold the sheet on the wrong bumps; the pairs at their weight
+    of 10 do not outweigh them, and the solve stays 6 cm off. A first solve led by the pairs
+    (they lie 10 cm off, past lead_motion_m) starts it on the right ones; with lead_motion_m
+    past them it does not fire."""
+    from test_gauss_newton import INTR as SMALL, T_CW, Problem, reference_surface, render
+    from surfelwarp.geometry.se3 import invert, transform_points
+    from surfelwarp.tracking.features import AnchoredMatches
+    from surfelwarp.tracking.tracker import SurfelSet, TrackingParams
+
+    slid = np.array([0.1, 0.0, 0.0])
+    problem = Problem(moved=lambda p: p + slid)
+    s, t = np.meshgrid(np.arange(-0.3, 0.3, 0.001), np.arange(-0.22, 0.22, 0.001))
+    obs = preprocess(render(reference_surface(s, t) + slid), SMALL, 1, 1)
+    index = np.arange(0, len(problem.points), 2011)
+    matches = AnchoredMatches(index, problem.points[index].astype(np.float64),
+                              transform_points(invert(T_CW), problem.truth[index]), np.ones(len(index)))
+    tracker = Tracker(SMALL, TrackingParams(lead_motion_m=lead_motion_m))
+    tracker.T_camera_to_world = T_CW.copy()
+    field, _ = tracker.nonrigid(problem.field, SurfelSet(problem.points, problem.normals, problem.knn,
+                                                         problem.weights), obs, matches)
+    error = problem.error(field)
+    print(f"lead_motion_m {lead_motion_m}: error mean {error.mean() * 1000:.2f} mm")
+    if lead_motion_m < 0.1:
+        assert error.mean() < 0.0005 and np.percentile(error, 99) < 0.001
+    else:
+        assert error.mean() > 0.03

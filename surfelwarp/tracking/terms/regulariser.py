@@ -1,5 +1,7 @@
 """The graph regulariser (SurfelWarp Eq. 8, DynamicFusion Eq. 8):
-lambda * sum_j sum_{i in N(j)} |T_i p_j - T_j p_j|^2.
+lambda * sum_j sum_{i in N(j)} psi(|T_i p_j - T_j p_j|), psi(n) = n^2 (SurfelWarp) or, with
+huber_m > 0, DynamicFusion's discontinuity-preserving Huber penalty (n^2 up to huber_m, then
+2 huber_m n - huber_m^2), solved by reweighting each edge with huber_m / n beyond its corner.
 
 With the node-local convention of warp_field (T_j x = R_j (x - p_j) + p_j + t_j) the residual
 of edge (j, i) is R_i (p_j - p_i) + p_i + t_i - p_j - t_j. Edges have unit weight (DynamicFusion's
@@ -13,7 +15,7 @@ import numpy as np
 from surfelwarp.deform.warp_field import WarpField
 from surfelwarp.geometry.se3 import skew
 from surfelwarp.tracking.assembly import BlockPattern, NormalEquations, blocks_from_parts, pair_block_parts
-from surfelwarp.tracking.terms import BaseTerm, Iterate, Problem, register
+from surfelwarp.tracking.terms import BaseTerm, Iterate, Problem, register, robust
 
 
 def _edges(field: WarpField) -> tuple[np.ndarray, np.ndarray]:
@@ -49,26 +51,36 @@ def reg_jacobian(field: WarpField) -> tuple[np.ndarray, np.ndarray]:
     return Ji.reshape(shape), Jj.reshape(shape)
 
 
-def regulariser_blocks(field: WarpField, pattern: BlockPattern) -> tuple[np.ndarray, np.ndarray]:
-    """Upper blocks (n_upper, 6, 6) of J_r^T J_r and J_r^T r_r (M, 6) of the regulariser."""
+def reg_penalty(residuals: np.ndarray, huber_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per edge (residuals (..., 3)): psi(|r|) and its reweighting (1 within the Huber corner)."""
+    norm = np.linalg.norm(residuals, axis=-1)
+    return robust(norm, "huber" if huber_m > 0 else "none", huber_m)
+
+
+def regulariser_blocks(field: WarpField, pattern: BlockPattern, huber_m: float = 0.0
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Upper blocks (n_upper, 6, 6) of J_r^T W J_r and J_r^T W r_r (M, 6) of the regulariser, W
+    the edges' Huber reweighting (the identity at huber_m = 0)."""
     m = field.num_nodes
     a, t, rr = (v[pattern.edge_real] for v in neighbour_motion(field))
+    w = reg_penalty(rr, huber_m)[1][:, None]
     flip = pattern.edge_flip[:, None]
     # Blocks (i, i), (j, j) and (i, j) = J_i^T J_j = -pair(a, t), stored as (j, i) = -pair(t, a)
     # where j < i (the minus sign is in the scatter matrix).
     u = np.concatenate([a, t, np.where(flip, t, a)])
     v = np.concatenate([a, t, np.where(flip, a, t)])
-    blocks = blocks_from_parts(pattern.reg_blocks(pair_block_parts(u, v)))
+    blocks = blocks_from_parts(pattern.reg_blocks(np.tile(w, (3, 1)) * pair_block_parts(u, v)))
     nodes = np.concatenate([pattern.edge_i, pattern.edge_j])
+    rr = w * rr
     gv = np.concatenate([np.concatenate([np.cross(a, rr), rr], 1), -np.concatenate([np.cross(t, rr), rr], 1)])
     g = np.bincount((6 * nodes[:, None] + np.arange(6)).reshape(-1), gv.reshape(-1), minlength=6 * m)
     return blocks, g.reshape(m, 6)
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_regulariser(p, L, edge_j, edge_i, slots, flip, lam, upper, grad):
+def _add_regulariser(p, L, edge_j, edge_i, slots, flip, lam, huber_m, upper, grad):
     """regulariser_blocks of the edges (j, i), times lam, added into upper and grad; returns the
-    sum of squared residuals. Per edge, with a = L_i (p_j - p_i), t = t_j and the residual r:
+    sum of the edges' penalties. Per edge, with a = L_i (p_j - p_i), t = t_j and the residual r:
     blocks (i, i) += pair(a, a), (j, j) += pair(t, t), (i, j) -= pair(a, t) (stored as (j, i)
     -= pair(t, a) when j < i); gradient i += (a x r, r), j -= (t x r, r). pair(u, v) is
     [[(u.v) I - v u^T, [u]x], [-[v]x, I]]."""
@@ -84,17 +96,25 @@ def _add_regulariser(p, L, edge_j, edge_i, slots, flip, lam, upper, grad):
         for c in range(3):
             t[c] = L[j, c, 3]
         r = np.empty(3)
+        r2 = 0.0
         for c in range(3):
             r[c] = p[i, c] + a[c] - p[j, c] - t[c]
-            total += r[c] * r[c]
-        _add_pair(upper[slots[0, e]], a, a, lam)
-        _add_pair(upper[slots[1, e]], t, t, lam)
-        if flip[e]:
-            _add_pair(upper[slots[2, e]], t, a, -lam)
+            r2 += r[c] * r[c]
+        w = lam
+        if huber_m > 0 and r2 > huber_m * huber_m:
+            n = np.sqrt(r2)
+            w = lam * huber_m / n
+            total += 2 * huber_m * n - huber_m * huber_m
         else:
-            _add_pair(upper[slots[2, e]], a, t, -lam)
-        _add_gradient(grad[i], a, r, lam)
-        _add_gradient(grad[j], t, r, -lam)
+            total += r2
+        _add_pair(upper[slots[0, e]], a, a, w)
+        _add_pair(upper[slots[1, e]], t, t, w)
+        if flip[e]:
+            _add_pair(upper[slots[2, e]], t, a, -w)
+        else:
+            _add_pair(upper[slots[2, e]], a, t, -w)
+        _add_gradient(grad[i], a, r, w)
+        _add_gradient(grad[j], t, r, -w)
     return total
 
 
@@ -131,11 +151,11 @@ def _add_pair(block, u, v, scale):
 
 
 class RegulariserTerm(BaseTerm):
-    def __init__(self, lambda_reg: float):
-        self.lambda_reg = lambda_reg
+    def __init__(self, lambda_reg: float, huber_m: float = 0.0):
+        self.lambda_reg, self.huber_m = lambda_reg, huber_m
 
     def energy(self, at: Iterate) -> float:
-        return self.lambda_reg * float(np.sum(reg_residuals(at.field) ** 2))
+        return self.lambda_reg * float(np.sum(reg_penalty(reg_residuals(at.field), self.huber_m)[0]))
 
     def linearize(self, at: Iterate, system: NormalEquations) -> float:
         # regulariser_blocks summed straight into the system's blocks (compiled): a room's
@@ -144,9 +164,9 @@ class RegulariserTerm(BaseTerm):
         upper = system.blocks()
         return self.lambda_reg * _add_regulariser(
             field.nodes.astype(np.float64), np.ascontiguousarray(field.transforms), pattern.edge_j, pattern.edge_i,
-            pattern.reg_slots, pattern.edge_flip, self.lambda_reg, upper, system.gradient)
+            pattern.reg_slots, pattern.edge_flip, self.lambda_reg, self.huber_m, upper, system.gradient)
 
 
 @register("regulariser")
 def build(problem: Problem) -> RegulariserTerm:
-    return RegulariserTerm(problem.params.lambda_reg)
+    return RegulariserTerm(problem.params.lambda_reg, problem.params.reg_huber_m)
