@@ -75,9 +75,9 @@ class NonRigidParams:
     feature_weight: float = 10.0       # a colour feature (terms/features.py) against a depth pixel's
                                        # weight of 1: their inverse variances (a pair's ends differ
                                        # by 0.3-0.45 mm along each axis on orbit, a depth pixel by
-                                       # ~1.4 mm along its ray) make it ~12; 100 pulled the still
-                                       # orbit 1.0 -> 1.8 mm off and held twist-limb's limb back
-                                       # (0.34 -> 0.52 mm); 0: off
+                                       # ~1.4 mm along its ray) make it ~12. At 100 the still
+                                       # orbit drifted more (EPE 1.76 against 1.06 mm at 10) and
+                                       # twist-limb's limb lagged (1.93 against 1.50); 0: off
     feature_huber_m: float = 0.01      # its Huber corner
     feature_normal_share: float = 0.1  # its weight along the surface normal, where depth is the
                                        # better judge, against along the surface (1: a distance)
@@ -93,8 +93,8 @@ class NonRigidParams:
     # without an anchor state, free space at weight 0) is left out.
     terms: tuple[str, ...] = ("depth", "features", "regulariser", "rest_anchors", "free_space")
 
-    ZERO_OK = {"lambda_reg", "reg_huber_m", "max_iterations", "min_normal_cos", "stop_motion_m", "stop_energy_rel", "damping",
-               "feature_weight", "feature_normal_share", "free_rings", "pcg_cell_radii"}
+    ZERO_OK = {"lambda_reg", "reg_huber_m", "max_iterations", "min_normal_cos", "stop_motion_m", "stop_energy_rel",
+               "damping", "feature_weight", "feature_normal_share", "free_rings", "pcg_cell_radii"}
     UNIT = {"min_normal_cos", "stop_energy_rel", "pcg_rtol", "feature_normal_share"}
 
     def __post_init__(self):
@@ -325,7 +325,8 @@ def _result(solve: Solve, current: Iterate, free: np.ndarray, steps: int, energi
     alignment = measure(final.live.T, final.live_normals.T, pb.T_camera_to_world, vertex[..., 2], vertex,
                         pb.depth_valid, pb.intrinsics)
     return field, NonRigidResult(
-        iterations=steps, energy=total, reg_energy=float(np.sum(reg_penalty(reg_residuals(field), pb.params.reg_huber_m)[0])),
+        iterations=steps, energy=total,
+        reg_energy=float(np.sum(reg_penalty(reg_residuals(field), pb.params.reg_huber_m)[0])),
         correspondences=len(pairs.index), energies=tuple(energies), converged=converged, node_support=support,
         released=anchors.released if anchors else None, silhouette_points=len(seen[1]) if seen else 0,
         alignment=alignment, lu_fallbacks=fallbacks + (anchors.lu_fallbacks if anchors else 0),

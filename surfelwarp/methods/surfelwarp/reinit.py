@@ -85,7 +85,8 @@ class ReinitTrigger:
             misaligned |= unsupported
             # Model points the depth no longer shows start a struggle too: the fingers of
             # `release` part while surfels skinned to both stay between them (17 % of the view),
-            # though the depth is explained (release, seeds 0-2: 4.0 / 4.7 / 3.7 -> 1.2 / 1.1 / 1.2 mm).
+            # though the depth is explained (release, seeds 0-2: EPE 4.0 / 4.7 / 3.7 -> 1.2 /
+            # 1.1 / 1.2 mm).
             unexplained |= alignment.unexplained_fraction > p.unexplained_fraction or unsupported
         # A struggle starts with a misaligned frame whose depth the model cannot explain (or whose
         # model the depth cannot support) and lasts while the misalignment does: the unexplained
