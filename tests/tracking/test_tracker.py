@@ -1,5 +1,5 @@
 """Template tracking (`--no-fusion`) end to end: synthetic scenes scored with `surfelwarp eval`;
-and how the tracker moves the warp field's common motion into the pose.
+and how the tracker moves the warp field's common motion into the pose and starts from far pairs.
 
 Reduced size (320x240) and length keep this quick; the full-size figures are in the README.
 """
@@ -11,13 +11,15 @@ import pytest
 from surfelwarp.cli import main
 from surfelwarp.data_tools import evaluate, synth
 from surfelwarp.deform.warp_field import WarpField, to_local
-from surfelwarp.geometry.se3 import se3_exp
+from surfelwarp.geometry.se3 import invert, se3_exp, transform_points
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.preprocess import preprocess
 from surfelwarp.tracking.gauss_newton import NonRigidResult
-from surfelwarp.tracking.tracker import Tracker, factor_rigid_motion
+from surfelwarp.tracking.features import AnchoredMatches
+from surfelwarp.tracking.tracker import SurfelSet, Tracker, TrackingParams, factor_rigid_motion
 
 from conftest import shared_data, sphere_depth_mm
+from test_gauss_newton import INTR as SMALL, T_CW, Problem, reference_surface, render
 
 
 
@@ -129,16 +131,11 @@ def test_rigid_icp_without_pairs_keeps_the_pose_and_says_so():
 
 @pytest.mark.parametrize("lead_motion_m", [0.015, 10.0])
 def test_far_pairs_lead_the_solve(lead_motion_m):
-    """Known answer: the bumpy sheet slid 10 cm along itself, 13 colour pairs on it. Past the
-    depth term's 3 cm gate its pairs hold the sheet on the wrong bumps; the pairs at their weight
+    """Known answer: the bumpy sheet slid 10 cm along itself, 13 colour pairs on it. Past its
+    3 cm gate the depth term's pairs hold the sheet on the wrong bumps; the pairs at their weight
     of 10 do not outweigh them, and the solve stays 6 cm off. A first solve led by the pairs
     (they lie 10 cm off, past lead_motion_m) starts it on the right ones; with lead_motion_m
     past them it does not fire."""
-    from test_gauss_newton import INTR as SMALL, T_CW, Problem, reference_surface, render
-    from surfelwarp.geometry.se3 import invert, transform_points
-    from surfelwarp.tracking.features import AnchoredMatches
-    from surfelwarp.tracking.tracker import SurfelSet, TrackingParams
-
     slid = np.array([0.1, 0.0, 0.0])
     problem = Problem(moved=lambda p: p + slid)
     s, t = np.meshgrid(np.arange(-0.3, 0.3, 0.001), np.arange(-0.22, 0.22, 0.001))
