@@ -1,7 +1,8 @@
 """The tracker both methods share: colour correspondences (colour.py), rigid ICP (the colour
 pairs moving the pose along what its depth cannot see), then non-rigid Gauss-Newton (with rest
-anchors, anchors.py, unless their weight is 0), then the warp field's common rigid motion moved
-into the camera pose.
+anchors, anchors.py, unless their weight is 0; started by a solve the colour pairs lead when
+they lie beyond the depth term's reach), then the warp field's common rigid motion moved into
+the camera pose.
 
 Pose conventions: `T_camera_to_world` maps this frame's camera points into the world (the first
 frame's camera); twists are (omega, v), rotation first (geometry/se3.py).
