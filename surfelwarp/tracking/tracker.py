@@ -303,7 +303,7 @@ class Tracker:
     def _pairs_far(self, field: WarpField, surfels: SurfelSet, matches: AnchoredMatches | None) -> bool:
         """Whether the colour pairs lie, in the median, beyond lead_motion_m of where the field
         and the pose put them."""
-        if matches is None or len(matches) == 0 or self.params.nonrigid.feature_weight <= 0:
+        if matches is None or len(matches) == 0 or not self.uses_features:
             return False
         i = matches.index
         live, _ = warp(matches.ref_points, None, surfels.knn[i], surfels.weights[i], field)
