@@ -101,46 +101,54 @@ def _information(points, normals, weights, residuals) -> tuple[RigidInformation,
     p, n = np.ascontiguousarray(points, np.float64), np.ascontiguousarray(normals, np.float64)
     w = np.ones(p.shape[1]) if weights is None else np.ascontiguousarray(weights, np.float64)
     r = np.zeros(p.shape[1]) if residuals is None else np.ascontiguousarray(residuals, np.float64)
-    H, g, centre, length = _sums(p, n, w, r)
-    return RigidInformation(H, Parametrisation(centre, length)), g
+    m = np.zeros(MOMENTS)
+    _moments(p, n, w, r, m, np.empty(6))
+    return information_from(m)
+
+
+# Raw sums of point-to-plane pairs about the world origin, from which the information about
+# the pairs' centroid follows (information_from): one pass over the pairs, which the rigid
+# ICP's pairing kernel makes as it pairs. H0 (36, upper triangle), g0 (6), sum w, sum w p (3),
+# sum w |p|^2; J0 = (p x n, n).
+MOMENTS = 47
+
+
+@numba.njit(cache=True, inline="always")
+def add_pair(m, J, p0, p1, p2, n0, n1, n2, w, r):
+    """Adds one pair to the raw sums m (J: six floats of scratch)."""
+    J[0], J[1], J[2] = p1 * n2 - p2 * n1, p2 * n0 - p0 * n2, p0 * n1 - p1 * n0
+    J[3], J[4], J[5] = n0, n1, n2
+    for a in range(6):
+        wa = w * J[a]
+        m[36 + a] += wa * r
+        for b in range(a, 6):
+            m[6 * a + b] += wa * J[b]
+    m[42] += w
+    m[43] += w * p0
+    m[44] += w * p1
+    m[45] += w * p2
+    m[46] += w * (p0 * p0 + p1 * p1 + p2 * p2)
 
 
 @numba.njit(cache=True, nogil=True)
-def _sums(p, n, w, r):
-    """H = sum w J J^T and g = sum w r J of the rows J = ((q x n) / L, n), q = p - c, about the
-    weighted centroid c with L the weighted RMS distance from it (at least 1 mm): the same
-    sums as whole-array products, in three passes and no (6, M) rows."""
-    m = p.shape[1]
-    total = 0.0
-    centre = np.zeros(3)
-    for i in range(m):
-        total += w[i]
-        for a in range(3):
-            centre[a] += w[i] * p[a, i]
-    total = max(total, 1e-12)
-    centre /= total
-    spread = 0.0
-    for i in range(m):
-        q0, q1, q2 = p[0, i] - centre[0], p[1, i] - centre[1], p[2, i] - centre[2]
-        spread += w[i] * (q0 * q0 + q1 * q1 + q2 * q2)
-    length = max(np.sqrt(spread / total), 1e-3)
-    H = np.zeros((6, 6))
-    g = np.zeros(6)
-    J = np.empty(6)
-    for i in range(m):
-        q0, q1, q2 = p[0, i] - centre[0], p[1, i] - centre[1], p[2, i] - centre[2]
-        J[0] = (q1 * n[2, i] - q2 * n[1, i]) / length
-        J[1] = (q2 * n[0, i] - q0 * n[2, i]) / length
-        J[2] = (q0 * n[1, i] - q1 * n[0, i]) / length
-        J[3], J[4], J[5] = n[0, i], n[1, i], n[2, i]
-        for a in range(6):
-            g[a] += w[i] * r[i] * J[a]
-            for b in range(a, 6):
-                H[a, b] += w[i] * J[a] * J[b]
-    for a in range(6):
-        for b in range(a):
-            H[a, b] = H[b, a]
-    return H, g, centre, length
+def _moments(p, n, w, r, m, J):
+    for i in range(p.shape[1]):
+        add_pair(m, J, p[0, i], p[1, i], p[2, i], n[0, i], n[1, i], n[2, i], w[i], r[i])
+
+
+def information_from(m: np.ndarray) -> tuple[RigidInformation, np.ndarray]:
+    """The information and gradient of raw sums m about the pairs' weighted centroid c, the
+    rotation scaled by their weighted RMS distance L from it (at least 1 mm): the rows about c
+    are J = A J0 with A = ((I / L, -[c]x / L), (0, I)), since (p - c) x n = p x n - c x n."""
+    total = max(m[42], 1e-12)
+    centre = m[43:46] / total
+    length = max(float(np.sqrt(max(m[46] / total - centre @ centre, 0.0))), 1e-3)
+    H0 = np.triu(m[:36].reshape(6, 6))
+    H0 = H0 + np.triu(H0, 1).T
+    A = np.eye(6)
+    A[:3, :3] /= length
+    A[:3, 3:] = -skew(centre) / length
+    return RigidInformation(A @ H0 @ A.T, Parametrisation(centre, length)), A @ m[36:42]
 
 
 def step(points: np.ndarray, normals: np.ndarray, residuals: np.ndarray, weights: np.ndarray | None,

@@ -22,7 +22,7 @@ import numpy as np
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import invert, se3_exp, skew
 from surfelwarp.preprocess import CameraObservation
-from surfelwarp.tracking.degeneracy import HeldDirections, step
+from surfelwarp.tracking.degeneracy import MOMENTS, HeldDirections, add_pair, information_from
 
 
 @dataclass(frozen=True)
@@ -83,14 +83,14 @@ class PointPairs:
 
 @dataclass(frozen=True)
 class _Level:
-    # Component-major (3, N) arrays: gathers and compactions along the last axis are the
-    # fast ones in numpy.
-    obs_vertex: np.ndarray    # (3, N) valid observation vertices, camera frame
+    # Views of the full maps at the level's stride, (h, w, 3) and (h, w): nothing is copied, the
+    # kernels walk the pixels.
+    obs_vertex: np.ndarray    # camera frame
     obs_normal: np.ndarray
-    model_vertex: np.ndarray  # (3, H*W) world
+    obs_valid: np.ndarray
+    model_vertex: np.ndarray  # world; empty pixels have a zero normal
     model_normal: np.ndarray
-    model_valid: np.ndarray   # (H*W,)
-    model_weight: np.ndarray | None   # (H*W,) or None: every pair weighs 1
+    model_weight: np.ndarray | None   # or None: every pair weighs 1
     intrinsics: Intrinsics
     gate_m: float
     iterations: int
@@ -102,115 +102,147 @@ def halved(intrinsics: Intrinsics) -> Intrinsics:
                       (intrinsics.width + 1) // 2, (intrinsics.height + 1) // 2)
 
 
-def _columns(a: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(a.reshape(-1, 3).T, dtype=np.float32)
-
-
 def _levels(model_vertex, model_normal, model_weight, observation, model_intrinsics, params) -> list[_Level]:
     """Pyramid levels from coarse to fine."""
     mv, mn = np.asarray(model_vertex, np.float32), np.asarray(model_normal, np.float32)
     mw = None if model_weight is None else np.asarray(model_weight, np.float32)
-    ov, on, ok = observation.vertex_map, observation.normal_map, observation.valid
+    ov, on = np.asarray(observation.vertex_map, np.float32), np.asarray(observation.normal_map, np.float32)
+    ok = np.asarray(observation.valid, np.bool_)
     intr = model_intrinsics
     levels = []
     for level in range(params.pyramid_levels):
         h, w = mv.shape[:2]
-        # Empty model pixels are zero; a real surfel has a unit normal.
-        mvalid = np.einsum("ijk,ijk->ij", mn, mn) > 0.25
         k = params.pyramid_levels - 1 - level
-        levels.append(_Level(_columns(ov[ok]), _columns(on[ok]), _columns(mv), _columns(mn), mvalid.reshape(-1),
-                             None if mw is None else mw.reshape(-1), intr.with_size(w, h),
-                             params.distance_gate_m[k], params.iterations[k]))
+        levels.append(_Level(ov, on, ok, mv, mn, mw, intr.with_size(w, h), params.distance_gate_m[k],
+                             params.iterations[k]))
         mv, mn, intr = mv[::2, ::2], mn[::2, ::2], halved(intr)
         mw = None if mw is None else mw[::2, ::2]
         ov, on, ok = ov[::2, ::2], on[::2, ::2], ok[::2, ::2]
     return levels[::-1]
 
 
+def _constants(level: _Level, T: np.ndarray, T_world_to_model: np.ndarray, min_normal_cos: float):
+    intr, f32 = level.intrinsics, np.float32
+    weights = level.model_weight if level.model_weight is not None else np.ones((1, 1), f32)
+    return (level.obs_vertex, level.obs_normal, level.obs_valid, level.model_vertex, level.model_normal, weights,
+            level.model_weight is not None, np.ascontiguousarray(T[:3], f32),
+            np.ascontiguousarray(T_world_to_model[:3], f32),
+            np.array([intr.fx, intr.fy, intr.cx, intr.cy, level.gate_m ** 2, min_normal_cos], f32))
+
+
 def _associate(level: _Level, T: np.ndarray, T_world_to_model: np.ndarray, min_normal_cos: float):
     """World observation points (3, M), model normals (3, M), residuals (M,) and weights (M,)
-    or None of the gated projective pairs."""
-    intr = level.intrinsics
-    f32, n = np.float32, level.obs_vertex.shape[1]
+    or None of the gated projective pairs, in the observation's pixel order."""
+    f32, n = np.float32, level.obs_valid.size
     out_p, out_n, r, w = np.empty((3, n), f32), np.empty((3, n), f32), np.empty(n, f32), np.empty(n, f32)
-    weights = level.model_weight if level.model_weight is not None else np.ones(1, f32)
-    k = _pairs(level.obs_vertex, level.obs_normal, level.model_vertex, level.model_normal, level.model_valid,
-               weights, level.model_weight is not None, np.ascontiguousarray(T[:3], f32),
-               np.ascontiguousarray(T_world_to_model[:3], f32),
-               np.array([intr.fx, intr.fy, intr.cx, intr.cy, level.gate_m ** 2, min_normal_cos], f32),
-               intr.width, intr.height, out_p, out_n, r, w)
+    k = _pairs(*_constants(level, T, T_world_to_model, min_normal_cos), out_p, out_n, r, w)
     return out_p[:, :k], out_n[:, :k], r[:k], (w[:k] if level.model_weight is not None else None)
 
 
-PAIRS_CHUNK = 8192     # observation points per parallel task of _pairs
+def _moments_of_pairs(level: _Level, T: np.ndarray, T_world_to_model: np.ndarray, min_normal_cos: float
+                      ) -> tuple[np.ndarray, int, float]:
+    """The raw sums of the gated projective pairs (degeneracy.MOMENTS), their number and their
+    sum of squared residuals (unweighted), made as they are found: no pair is written out."""
+    rows = level.obs_valid.shape[0]
+    partial = np.zeros(((rows + ROWS_PER_TASK - 1) // ROWS_PER_TASK, MOMENTS + 2))
+    _pair_moments(*_constants(level, T, T_world_to_model, min_normal_cos), partial)
+    total = partial.sum(axis=0)
+    return total[:MOMENTS], int(total[MOMENTS]), float(total[MOMENTS + 1])
+
+
+ROWS_PER_TASK = 16     # observation rows per parallel task of the pairing kernels
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _pair_at(ov, on, mv, mn, T, T_wm, c, y, x):
+    """The projective pair of observation pixel (y, x) if it passes the gates: (found, world
+    point, model normal, residual, model pixel)."""
+    fx, fy, cx, cy, gate2, min_cos = c[0], c[1], c[2], c[3], c[4], c[5]
+    vx, vy, vz = ov[y, x, 0], ov[y, x, 1], ov[y, x, 2]
+    p0 = T[0, 0] * vx + T[0, 1] * vy + T[0, 2] * vz + T[0, 3]
+    p1 = T[1, 0] * vx + T[1, 1] * vy + T[1, 2] * vz + T[1, 3]
+    p2 = T[2, 0] * vx + T[2, 1] * vy + T[2, 2] * vz + T[2, 3]
+    nothing = (False, p0, p1, p2, p0, p0, p0, p0, 0, 0)
+    q2 = T_wm[2, 0] * p0 + T_wm[2, 1] * p1 + T_wm[2, 2] * p2 + T_wm[2, 3]
+    if not q2 > 1e-6:
+        return nothing
+    q0 = T_wm[0, 0] * p0 + T_wm[0, 1] * p1 + T_wm[0, 2] * p2 + T_wm[0, 3]
+    q1 = T_wm[1, 0] * p0 + T_wm[1, 1] * p1 + T_wm[1, 2] * p2 + T_wm[1, 3]
+    inv_z = np.float32(1.0) / q2
+    u = np.rint(fx * q0 * inv_z + cx)
+    v = np.rint(fy * q1 * inv_z + cy)
+    if not (u >= 0 and u < mv.shape[1] and v >= 0 and v < mv.shape[0]):
+        return nothing
+    i, j = int(v), int(u)
+    m0, m1, m2 = mn[i, j, 0], mn[i, j, 1], mn[i, j, 2]
+    if not m0 * m0 + m1 * m1 + m2 * m2 > 0.25:          # an empty model pixel
+        return nothing
+    d0, d1, d2 = p0 - mv[i, j, 0], p1 - mv[i, j, 1], p2 - mv[i, j, 2]
+    if not d0 * d0 + d1 * d1 + d2 * d2 < gate2:
+        return nothing
+    nx, ny, nz = on[y, x, 0], on[y, x, 1], on[y, x, 2]
+    n0 = T[0, 0] * nx + T[0, 1] * ny + T[0, 2] * nz
+    n1 = T[1, 0] * nx + T[1, 1] * ny + T[1, 2] * nz
+    n2 = T[2, 0] * nx + T[2, 1] * ny + T[2, 2] * nz
+    if not n0 * m0 + n1 * m1 + n2 * m2 > min_cos:
+        return nothing
+    return (True, p0, p1, p2, m0, m1, m2, m0 * d0 + m1 * d1 + m2 * d2, i, j)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _pairs(obs_v, obs_n, model_v, model_n, model_valid, model_w, weighted, T, T_wm, c, width, height,
-           out_p, out_n, out_r, out_w):
-    """The projective pairs of _associate (float32 as the maps), in the observation's order:
-    their count. Each task writes its pairs from its own first point on, then they are closed up."""
-    n = obs_v.shape[1]
-    tasks = (n + PAIRS_CHUNK - 1) // PAIRS_CHUNK
+def _pairs(ov, on, ok, mv, mn, mw, weighted, T, T_wm, c, out_p, out_n, out_r, out_w):
+    """The pairs of _associate (float32 as the maps), in the observation's pixel order: their
+    count. Each task writes its pairs from its first pixel's index on, then they are closed up."""
+    h, w = ok.shape
+    tasks = (h + ROWS_PER_TASK - 1) // ROWS_PER_TASK
     counts = np.zeros(tasks, np.int64)
     for t in numba.prange(tasks):
-        counts[t] = _pairs_range(obs_v, obs_n, model_v, model_n, model_valid, model_w, weighted, T, T_wm, c,
-                                 width, height, out_p, out_n, out_r, out_w, t * PAIRS_CHUNK,
-                                 min(n, (t + 1) * PAIRS_CHUNK))
+        k = t * ROWS_PER_TASK * w
+        for y in range(t * ROWS_PER_TASK, min(h, (t + 1) * ROWS_PER_TASK)):
+            for x in range(w):
+                if not ok[y, x]:
+                    continue
+                found, p0, p1, p2, m0, m1, m2, r, i, j = _pair_at(ov, on, mv, mn, T, T_wm, c, y, x)
+                if not found:
+                    continue
+                out_p[0, k], out_p[1, k], out_p[2, k] = p0, p1, p2
+                out_n[0, k], out_n[1, k], out_n[2, k] = m0, m1, m2
+                out_r[k] = r
+                if weighted:
+                    out_w[k] = mw[i, j]
+                k += 1
+        counts[t] = k - t * ROWS_PER_TASK * w
     k = counts[0] if tasks else 0      # the first task's pairs are in place
     for t in range(1, tasks):
-        start = t * PAIRS_CHUNK
-        for j in range(start, start + counts[t]):
+        start = t * ROWS_PER_TASK * w
+        for s in range(start, start + counts[t]):
             for a in range(3):
-                out_p[a, k] = out_p[a, j]
-                out_n[a, k] = out_n[a, j]
-            out_r[k] = out_r[j]
+                out_p[a, k] = out_p[a, s]
+                out_n[a, k] = out_n[a, s]
+            out_r[k] = out_r[s]
             if weighted:
-                out_w[k] = out_w[j]
+                out_w[k] = out_w[s]
             k += 1
     return k
 
 
-@numba.njit(cache=True, nogil=True)
-def _pairs_range(obs_v, obs_n, model_v, model_n, model_valid, model_w, weighted, T, T_wm, c, width, height,
-                 out_p, out_n, out_r, out_w, start, end):
-    fx, fy, cx, cy, gate2, min_cos = c[0], c[1], c[2], c[3], c[4], c[5]
-    k = start
-    for i in range(start, end):
-        x, y, z = obs_v[0, i], obs_v[1, i], obs_v[2, i]
-        p0 = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
-        p1 = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
-        p2 = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
-        q2 = T_wm[2, 0] * p0 + T_wm[2, 1] * p1 + T_wm[2, 2] * p2 + T_wm[2, 3]
-        if not q2 > 1e-6:
-            continue
-        q0 = T_wm[0, 0] * p0 + T_wm[0, 1] * p1 + T_wm[0, 2] * p2 + T_wm[0, 3]
-        q1 = T_wm[1, 0] * p0 + T_wm[1, 1] * p1 + T_wm[1, 2] * p2 + T_wm[1, 3]
-        inv_z = np.float32(1.0) / q2
-        u = np.rint(fx * q0 * inv_z + cx)
-        v = np.rint(fy * q1 * inv_z + cy)
-        if not (u >= 0 and u < width and v >= 0 and v < height):
-            continue
-        pix = int(v) * width + int(u)
-        if not model_valid[pix]:
-            continue
-        d0, d1, d2 = p0 - model_v[0, pix], p1 - model_v[1, pix], p2 - model_v[2, pix]
-        if not d0 * d0 + d1 * d1 + d2 * d2 < gate2:
-            continue
-        nx, ny, nz = obs_n[0, i], obs_n[1, i], obs_n[2, i]
-        m0, m1, m2 = model_n[0, pix], model_n[1, pix], model_n[2, pix]
-        n0 = T[0, 0] * nx + T[0, 1] * ny + T[0, 2] * nz
-        n1 = T[1, 0] * nx + T[1, 1] * ny + T[1, 2] * nz
-        n2 = T[2, 0] * nx + T[2, 1] * ny + T[2, 2] * nz
-        if not n0 * m0 + n1 * m1 + n2 * m2 > min_cos:
-            continue
-        out_p[0, k], out_p[1, k], out_p[2, k] = p0, p1, p2
-        out_n[0, k], out_n[1, k], out_n[2, k] = m0, m1, m2
-        out_r[k] = m0 * d0 + m1 * d1 + m2 * d2
-        if weighted:
-            out_w[k] = model_w[pix]
-        k += 1
-    return k - start
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _pair_moments(ov, on, ok, mv, mn, mw, weighted, T, T_wm, c, partial):
+    """Each task's raw sums of its pairs (degeneracy.add_pair, in float64), then their count and
+    their sum of squared residuals."""
+    h, w = ok.shape
+    for t in numba.prange(partial.shape[0]):
+        m, J = partial[t], np.empty(6)
+        for y in range(t * ROWS_PER_TASK, min(h, (t + 1) * ROWS_PER_TASK)):
+            for x in range(w):
+                if not ok[y, x]:
+                    continue
+                found, p0, p1, p2, m0, m1, m2, r, i, j = _pair_at(ov, on, mv, mn, T, T_wm, c, y, x)
+                if found:
+                    f = np.float64
+                    add_pair(m, J, f(p0), f(p1), f(p2), f(m0), f(m1), f(m2), f(mw[i, j]) if weighted else 1.0, f(r))
+                    m[MOMENTS] += 1.0
+                    m[MOMENTS + 1] += f(r) * f(r)
 
 
 def rigid_icp(model_vertex_map: np.ndarray, model_normal_map: np.ndarray, T_model_camera_to_world: np.ndarray,
@@ -251,11 +283,11 @@ def rigid_icp(model_vertex_map: np.ndarray, model_normal_map: np.ndarray, T_mode
 
     if pairs is not None and held is not None and len(held) and len(pairs.weights):
         T = along_held(T, held, pairs)
-    _, _, r, _ = _associate(levels[-1], T, T_world_to_model, params.min_normal_cos)
-    if len(r) < params.min_correspondences:
-        return RigidResult(T_init, total, float("nan"), float("nan"), len(r), False, held)
-    energy = float(np.mean(r.astype(np.float64) ** 2))
-    return RigidResult(T, total, energy, float(np.sqrt(energy)), len(r), settled, held)
+    _, count, squares = _moments_of_pairs(levels[-1], T, T_world_to_model, params.min_normal_cos)
+    if count < params.min_correspondences:
+        return RigidResult(T_init, total, float("nan"), float("nan"), count, False, held)
+    energy = squares / count
+    return RigidResult(T, total, energy, float(np.sqrt(energy)), count, settled, held)
 
 
 def point_jacobian(p: np.ndarray) -> np.ndarray:
@@ -293,10 +325,11 @@ def _align(levels: list[_Level], T_init: np.ndarray, T_world_to_model: np.ndarra
     for level in levels:
         settled = False
         for _ in range(level.iterations):
-            p, n, r, w = _associate(level, T, T_world_to_model, params.min_normal_cos)
-            if len(r) < params.min_correspondences:
+            moments, count, _ = _moments_of_pairs(level, T, T_world_to_model, params.min_normal_cos)
+            if count < params.min_correspondences:
                 break
-            xi, info = step(p, n, r, w, min_eigen_ratio)
+            info, g = information_from(moments)
+            xi = info.solve(g, min_eigen_ratio)
             T = se3_exp(xi) @ T
             total += 1
             settled = (np.linalg.norm(xi[:3]) < params.stop_rotation_rad

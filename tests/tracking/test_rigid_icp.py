@@ -238,7 +238,7 @@ def test_7scenes_frame_to_frame_chain_drift(office):
 def _associate_numpy(level, T, T_world_to_model, min_normal_cos):
     """The projective pairing of rigid_icp._associate in whole-array numpy: its reference."""
     R, t = T[:3, :3].astype(np.float32), T[:3, 3:].astype(np.float32)
-    p = R @ level.obs_vertex + t
+    p = R @ level.obs_vertex[level.obs_valid].T + t
     q = T_world_to_model[:3, :3].astype(np.float32) @ p + T_world_to_model[:3, 3:].astype(np.float32)
     intr = level.intrinsics
     front = q[2] > 1e-6
@@ -247,30 +247,54 @@ def _associate_numpy(level, T, T_world_to_model, min_normal_cos):
     v = np.rint(intr.fy * q[1] * inv_z + intr.cy).astype(np.int64)
     inside = front & (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
     pixel = np.where(inside, v * intr.width + u, 0)
-    vm, nm = level.model_vertex[:, pixel], level.model_normal[:, pixel]
+    vm, nm = level.model_vertex.reshape(-1, 3)[pixel].T, level.model_normal.reshape(-1, 3)[pixel].T
     d = p - vm
-    keep = (inside & level.model_valid[pixel] & (np.sum(d * d, 0) < level.gate_m ** 2)
-            & (np.sum((R @ level.obs_normal) * nm, 0) > min_normal_cos))
-    w = None if level.model_weight is None else level.model_weight[pixel][keep]
+    keep = (inside & (np.sum(nm * nm, 0) > 0.25) & (np.sum(d * d, 0) < level.gate_m ** 2)
+            & (np.sum((R @ level.obs_normal[level.obs_valid].T) * nm, 0) > min_normal_cos))
+    w = None if level.model_weight is None else level.model_weight.reshape(-1)[pixel][keep]
     return p[:, keep], nm[:, keep], np.sum(nm * d, 0)[keep], w
 
 
-def test_compiled_pairing_equals_the_numpy_reference(synthetic):
-    from surfelwarp.tracking.rigid_icp import _associate, _levels
+def _pyramid_levels(synthetic):
+    """Every level of the pyramid of the synthetic pair, without and with model weights, and a
+    pose near the truth to pair them at."""
+    from surfelwarp.tracking.rigid_icp import _levels
     first, second = synthetic
     mv, mn = world_maps(first, np.eye(4))
     weight = np.random.default_rng(2).random(first.valid.shape).astype(np.float32)
-    params = RigidParams()
     T = se3_exp(np.array([0.01, -0.02, 0.005, 0.01, 0.0, -0.01])) @ MOTION
-    for model_weight in (None, weight):
-        for level in _levels(mv, mn, model_weight, second, INTR, params):
-            got = _associate(level, T, np.eye(4), params.min_normal_cos)
-            ref = _associate_numpy(level, T, np.eye(4), params.min_normal_cos)
-            assert len(got[2]) > 100 and len(got[2]) == len(ref[2])
-            for a, b in zip(got, ref):
-                assert (a is None) == (b is None)
-                if a is not None:
-                    assert np.allclose(a, b, rtol=0, atol=2e-6)
+    return [level for w in (None, weight) for level in _levels(mv, mn, w, second, INTR, RigidParams())], T
+
+
+def test_compiled_pairing_equals_the_numpy_reference(synthetic):
+    from surfelwarp.tracking.rigid_icp import _associate
+    levels, T = _pyramid_levels(synthetic)
+    cos = RigidParams().min_normal_cos
+    for level in levels:
+        got, ref = _associate(level, T, np.eye(4), cos), _associate_numpy(level, T, np.eye(4), cos)
+        assert len(got[2]) > 100 and len(got[2]) == len(ref[2])
+        for a, b in zip(got, ref):
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert np.allclose(a, b, rtol=0, atol=2e-6)
+
+
+def test_pair_moments_equal_the_sums_of_the_written_pairs(synthetic):
+    """The ICP's one-pass sums give the information and gradient of the pairs it writes out."""
+    from surfelwarp.tracking.degeneracy import _information, information_from
+    from surfelwarp.tracking.rigid_icp import _associate, _moments_of_pairs
+    levels, T = _pyramid_levels(synthetic)
+    cos = RigidParams().min_normal_cos
+    for level in levels:
+        p, n, r, w = _associate(level, T, np.eye(4), cos)
+        moments, count, squares = _moments_of_pairs(level, T, np.eye(4), cos)
+        assert count == len(r) > 100
+        assert squares == pytest.approx(np.sum(r.astype(np.float64) ** 2), rel=1e-9)
+        (info, g), (ref, ref_g) = information_from(moments), _information(p, n, w, r)
+        assert np.allclose(info.frame.centre, ref.frame.centre, rtol=0, atol=1e-9)
+        assert info.frame.length_m == pytest.approx(ref.frame.length_m, rel=1e-9)
+        assert np.allclose(info.H, ref.H, rtol=1e-9, atol=1e-9 * np.abs(ref.H).max())
+        assert np.allclose(g, ref_g, rtol=1e-7, atol=1e-9 * np.abs(ref_g).max())
 
 
 def test_the_weighted_median_is_sortings():
