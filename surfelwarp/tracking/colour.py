@@ -106,7 +106,7 @@ class ColourMatcher:
         solved, in_solve = solved_index(drawn, model.visible)
         seen = transform_points(self._T_last, q)
         ok &= in_solve
-        ok &= near_prediction(np.linalg.norm(predicted - seen, axis=1), ok, p)
+        ok &= near_prediction(np.linalg.norm(predicted - seen, axis=1), ok, p, predicted)
         keep = np.flatnonzero(ok)[locally_rigid(predicted[ok], seen[ok], p)]
         return AnchoredMatches(solved[keep], kf.points[ia[keep]], q[keep], np.ones(len(keep)))
 

@@ -35,7 +35,8 @@ class FeatureParams:
     ratio: float = 0.8                  # Lowe's test: best distance below this share of the second
     max_motion_m: float = 0.3           # a feature moving farther between two frames is an outlier,
     motion_spread: float = 3.0          # and one farther than this times the median distance from
-    motion_floor_m: float = 0.02        # the prediction (at least this)
+    motion_floor_m: float = 0.02        # the prediction (at least this) of the pairs
+    motion_neighbours: int = 16         # nearest it
     rigidity_radius_m: float = 0.06     # neighbours whose distance is compared
     rigidity_tolerance: float = 0.1     # a distance may change by this share of itself ...
     rigidity_floor_m: float = 0.006     # ... or by this much (depth noise, pixel rounding)
@@ -274,14 +275,28 @@ def checked_pairs(pa: np.ndarray, pb: np.ndarray, previous_vertex: np.ndarray, p
     return checked_points(pa, pb, qa, ok_a, current_vertex, current_valid, T_previous_to_current, params)
 
 
-def near_prediction(deviation: np.ndarray, candidate: np.ndarray, params: FeatureParams) -> np.ndarray:
+def near_prediction(deviation: np.ndarray, candidate: np.ndarray, params: FeatureParams,
+                    points: np.ndarray | None = None) -> np.ndarray:
     """Pairs whose distance from the predicted position is below max_motion_m and below
-    motion_spread times the candidates' median (at least motion_floor_m): a group of wrong
-    pairs that agree among themselves passes the local rigidity test, not this one, unless the
-    whole view moved that far (the shirt pair: every pair ~20 cm from the prediction)."""
-    typical = np.median(deviation[candidate]) if candidate.any() else 0.0
-    bound = min(params.max_motion_m, max(params.motion_floor_m, params.motion_spread * typical))
-    return deviation < bound
+    motion_spread times the median of the candidates near them (at least motion_floor_m): a
+    group of wrong pairs that agree among themselves passes the local rigidity test, not this
+    one, unless the pairs around it moved that far too (the shirt pair: every pair ~20 cm from
+    the prediction; a ball rolling 5 cm between frames in a still room: the pairs on the ball).
+    `points` (n, 3) place the pairs; the median is over each one's motion_neighbours nearest
+    candidates, or over all candidates without points."""
+    ok = np.zeros(len(deviation), bool)
+    idx = np.flatnonzero(candidate)
+    if len(idx) == 0:
+        return ok
+    if points is None or len(idx) <= params.motion_neighbours:
+        typical = np.full(len(idx), np.median(deviation[idx]))
+    else:
+        c = np.ascontiguousarray(points[idx], np.float64)
+        _, near = KDTree(c).query(c, k=params.motion_neighbours)
+        typical = np.median(deviation[idx][near.reshape(len(c), -1)], axis=1)
+    bound = np.minimum(params.max_motion_m, np.maximum(params.motion_floor_m, params.motion_spread * typical))
+    ok[idx] = deviation[idx] < bound
+    return ok
 
 
 def checked_points(pa: np.ndarray, pb: np.ndarray, qa: np.ndarray, ok_a: np.ndarray, current_vertex: np.ndarray,
@@ -293,7 +308,7 @@ def checked_points(pa: np.ndarray, pb: np.ndarray, qa: np.ndarray, ok_a: np.ndar
     qb, ok_b = lift(pb, current_vertex, current_valid)
     ok = ok_a & ok_b
     qa_now = transform_points(T_previous_to_current, qa)
-    ok &= near_prediction(np.linalg.norm(qb - qa_now, axis=1), ok, params)
+    ok &= near_prediction(np.linalg.norm(qb - qa_now, axis=1), ok, params, qa_now)
     matches = FeatureMatches(pa[ok], pb[ok], qa[ok], qb[ok])
     if len(matches) == 0:
         return matches

@@ -165,6 +165,29 @@ def test_a_motion_beyond_the_bound_is_dropped():
     assert len(match_frames(kp, kp, vertex, valid, vertex, valid, far, replace(params, max_motion_m=0.6))) > 100
 
 
+def test_the_motion_bound_follows_the_pairs_around_each_one():
+    """A still room (1 mm off the prediction) with a ball that moved 6 cm and a few lone wrong
+    pairs 6 cm off: the bound from all pairs' median drops the ball with the wrong pairs; the
+    bound from each pair's neighbours keeps the ball and still drops the lone ones."""
+    from surfelwarp.tracking.features import near_prediction
+    rng = np.random.default_rng(5)
+    room = np.c_[rng.uniform(-1, 1, (400, 2)), rng.uniform(2, 3, 400)]
+    ball = [0.3, 0.2, 1.5] + rng.normal(0, 0.04, (40, 3))
+    points = np.r_[room, ball]
+    deviation = np.r_[rng.uniform(0, 0.002, 400), 0.06 + rng.uniform(-0.005, 0.005, 40)]
+    wrong = np.arange(0, 400, 80)
+    deviation[wrong] = 0.06
+    candidate = np.ones(len(points), bool)
+    candidate[7] = False
+    params = FeatureParams()
+    whole = near_prediction(deviation, candidate, params)
+    local = near_prediction(deviation, candidate, params, points)
+    assert not whole[400:].any() and not whole[wrong].any()
+    assert local[400:].all() and not local[wrong].any() and not local[7]
+    assert whole[:400].sum() == local[:400].sum() == 400 - len(wrong) - 1      # index 7: no candidate
+    assert not near_prediction(deviation, np.zeros(len(points), bool), params, points).any()
+
+
 def test_combine_keeps_one_match_a_surfel_the_first_sets():
     from surfelwarp.tracking.features import AnchoredMatches, combine
 
