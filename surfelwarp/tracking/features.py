@@ -35,8 +35,8 @@ class FeatureParams:
     ratio: float = 0.8                  # Lowe's test: best distance below this share of the second
     max_motion_m: float = 0.3           # a feature moving farther between two frames is an outlier,
     motion_spread: float = 3.0          # and one farther than this times the median distance from
-    motion_floor_m: float = 0.02        # the prediction (at least this) of the pairs
-    motion_neighbours: int = 16         # nearest it
+    motion_floor_m: float = 0.02        # the prediction (at least this) of its motion_neighbours
+    motion_neighbours: int = 16         # nearest pairs
     rigidity_radius_m: float = 0.06     # neighbours whose distance is compared
     rigidity_tolerance: float = 0.1     # a distance may change by this share of itself ...
     rigidity_floor_m: float = 0.006     # ... or by this much (depth noise, pixel rounding)
