@@ -149,11 +149,3 @@ def information_from(m: np.ndarray) -> tuple[RigidInformation, np.ndarray]:
     A[:3, :3] /= length
     A[:3, 3:] = -skew(centre) / length
     return RigidInformation(A @ H0 @ A.T, Parametrisation(centre, length)), A @ m[36:42]
-
-
-def step(points: np.ndarray, normals: np.ndarray, residuals: np.ndarray, weights: np.ndarray | None,
-         min_eigen_ratio: float) -> tuple[np.ndarray, RigidInformation]:
-    """The weighted point-to-plane Gauss-Newton twist (omega, v) for exp(xi) p, remapped to
-    the directions the pairs constrain; and the pairs' information."""
-    info, g = _information(points, normals, weights, residuals)
-    return info.solve(g, min_eigen_ratio), info

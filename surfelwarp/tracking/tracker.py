@@ -86,6 +86,13 @@ class SurfelSet:
     weights: np.ndarray
 
 
+def warped_matches(matches: AnchoredMatches, surfels: SurfelSet, field: WarpField) -> np.ndarray:
+    """(n, 3) world: each colour match's reference point where `field` puts it, skinned as its
+    surfel (what rigid ICP's colour pairs and the pairs-led start compare with the frame)."""
+    i = matches.index
+    return warp(matches.ref_points, None, surfels.knn[i], surfels.weights[i], field)[0]
+
+
 def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None,
                         rest_points: np.ndarray | None = None,
                         held: HeldDirections | None = None) -> tuple[WarpField, np.ndarray]:
@@ -186,10 +193,8 @@ class Tracker:
         p = self.params
         if matches is None or len(matches) == 0 or not p.colour_pose:
             return None
-        knn, weights = surfels.knn[matches.index], surfels.weights[matches.index]
-        world, _ = warp(matches.ref_points, None, knn, weights, field)
-        still = self._rigid_weight(self.stillness(knn, weights))
-        return PointPairs(matches.target_points, world, matches.weights * still)
+        still = self._rigid_weight(self.stillness(surfels.knn[matches.index], surfels.weights[matches.index]))
+        return PointPairs(matches.target_points, warped_matches(matches, surfels, field), matches.weights * still)
 
     def _rigid_weight(self, stillness: np.ndarray) -> np.ndarray:
         """A point's weight in rigid ICP by its stillness (0-1): a released point (0) keeps
@@ -305,9 +310,8 @@ class Tracker:
         and the pose put them."""
         if matches is None or len(matches) == 0 or not self.uses_features:
             return False
-        i = matches.index
-        live, _ = warp(matches.ref_points, None, surfels.knn[i], surfels.weights[i], field)
         seen = transform_points(self.T_camera_to_world, matches.target_points)
+        live = warped_matches(matches, surfels, field)
         return float(np.median(np.linalg.norm(live - seen, axis=1))) > self.params.lead_motion_m
 
     def counts(self, rigid: RigidResult, nonrigid: NonRigidResult) -> TrackingCounts:

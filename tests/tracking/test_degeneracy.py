@@ -6,7 +6,7 @@ import pytest
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import se3_exp, se3_log
 from surfelwarp.preprocess import preprocess
-from surfelwarp.tracking.degeneracy import Parametrisation, RigidInformation, step
+from surfelwarp.tracking.degeneracy import Parametrisation, RigidInformation, _information
 from surfelwarp.tracking.rigid_icp import RigidParams, rigid_icp
 
 INTR = Intrinsics(300.0, 300.0, 159.5, 119.5, 320, 240)
@@ -33,7 +33,8 @@ def test_plane_holds_its_in_plane_motions_and_solves_the_rest():
     # The plane z = 1.003 + 0.01 x - 0.02 y: the step reaches it (to first order) by a shift along
     # the normal and two tilts, and moves nothing along the plane.
     target = 1.003 + 0.01 * p[0] - 0.02 * p[1]
-    xi, _ = step(p, n, p[2] - target, None, 1e-6)
+    info, g = _information(p, n, None, p[2] - target)
+    xi = info.solve(g, 1e-6)
     T = se3_exp(xi)
     after = T[:3, :3] @ p + T[:3, 3:]
     np.testing.assert_allclose(after[2], 1.003 + 0.01 * after[0] - 0.02 * after[1], atol=2e-5)
@@ -126,7 +127,6 @@ def test_icp_follows_weak_directions_that_the_whole_view_moves_along():
 
 def test_compiled_sums_equal_the_whole_array_products():
     """H and g summed pair by pair equal (J w) J^T and J (w r) of the explicit rows."""
-    from surfelwarp.tracking.degeneracy import _information
     rng = np.random.default_rng(8)
     p, n = rng.normal(size=(3, 500)) + [[0.2], [0.1], [1.5]], rng.normal(size=(3, 500))
     w, r = rng.random(500), rng.normal(size=500) * 0.01
