@@ -30,6 +30,10 @@ PLAIN_PX = 0.2               # must allow against it (its weakest gradient direc
 ALIGNED, UNALIGNED, FAILED = 1, 0, -1    # status: aligned; no say (plain patch, too little of its
                                          # surface); textured, but nothing matches near the start
 TRANSLATION_ITERS = 20       # iterations of the shift alone, at most, before the affine ones
+# The sums over a patch may be reordered (and so vectorised): the kernel takes ~30 % less time on
+# a twist-limb frame's 4.2k flow pairs, the results move by 1e-13 px. Not numba's fastmath=True:
+# that assumes no infinities, and a step is inf where an alignment runs away.
+SUMS = {"reassoc", "contract"}
 
 
 @numba.njit(cache=True, inline="always")
@@ -62,7 +66,7 @@ def _nearest_value(image, x, y):
     return image[int(round(min(max(y, 0.0), image.shape[0] - 1.0))), int(round(min(max(x, 0.0), image.shape[1] - 1.0)))]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=SUMS)
 def _normalise(v, w, out):
     """out = (v - mean) / std, both weighted by w; returns std."""
     sw = m = 0.0
@@ -79,41 +83,42 @@ def _normalise(v, w, out):
     return sd
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=SUMS)
 def _project_out(SD, w, Tn):
-    """Project the steepest descent images (in place) off the span of 1 and Tn (gain and
-    offset); their Gauss-Newton matrix."""
+    """Project the steepest descent images (the rows of SD, in place) off the span of 1 and Tn
+    (gain and offset); their Gauss-Newton matrix. Each sum runs along a row into a local
+    variable, which the compiler can vectorise (not into an element of H)."""
     S = len(w)
     sw = tn2 = 0.0
     for s in range(S):
         sw += w[s]
         tn2 += w[s] * Tn[s] * Tn[s]
     for k in range(6):
+        sd = SD[k]
         mean = along = 0.0
         for s in range(S):
-            mean += w[s] * SD[s, k]
+            mean += w[s] * sd[s]
         mean /= max(sw, 1e-12)
         for s in range(S):
-            SD[s, k] -= mean
-            along += w[s] * SD[s, k] * Tn[s]
+            sd[s] -= mean
+            along += w[s] * sd[s] * Tn[s]
         along /= max(tn2, 1e-12)
         for s in range(S):
-            SD[s, k] -= along * Tn[s]
-    H = np.zeros((6, 6))
-    for s in range(S):
-        for i in range(6):
-            wi = w[s] * SD[s, i]
-            for j in range(i, 6):
-                H[i, j] += wi * SD[s, j]
+            sd[s] -= along * Tn[s]
+    H = np.empty((6, 6))
     for i in range(6):
-        for j in range(i):
-            H[i, j] = H[j, i]
+        for j in range(i, 6):
+            acc = 0.0
+            for s in range(S):
+                acc += w[s] * SD[i, s] * SD[j, s]
+            H[i, j] = acc
+            H[j, i] = acc
     for i in range(6):
         H[i, i] += 1e-6
     return H
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=SUMS)
 def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window, iters, depth_tol_m, max_shift_px,
                result):
     S = len(ox)
@@ -122,15 +127,15 @@ def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window,
     fx, fy = ax - np.floor(ax), ay - np.floor(ay)
     T = np.empty(S)
     w = np.empty(S)
-    SD = np.empty((S, 6))
+    SD = np.empty((6, S))
     zc = _nearest_value(depth, ax, ay)
     kept = total = 0.0
     for s in range(S):
         x, y = ax + ox[s], ay + oy[s]
         r0, r1, c0, c1 = _cell(int(np.floor(x)), int(np.floor(y)), h, wd)
         T[s] = _blend(previous, r0, r1, c0, c1, fx, fy)
-        SD[s, 2] = _blend(gx, r0, r1, c0, c1, fx, fy)
-        SD[s, 5] = _blend(gy, r0, r1, c0, c1, fx, fy)
+        SD[2, s] = _blend(gx, r0, r1, c0, c1, fx, fy)
+        SD[5, s] = _blend(gy, r0, r1, c0, c1, fx, fy)
         w[s] = window[s]
         if depth_tol_m > 0:
             z = _nearest_value(depth, x, y)
@@ -145,13 +150,13 @@ def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window,
     sd = _normalise(T, w, Tn)
     gxx = gxy = gyy = 0.0
     for s in range(S):
-        tx, ty = SD[s, 2], SD[s, 5]
+        tx, ty = SD[2, s], SD[5, s]
         gxx += w[s] * tx * tx
         gxy += w[s] * tx * ty
         gyy += w[s] * ty * ty
         tx, ty = tx / sd, ty / sd
-        SD[s, 0], SD[s, 1], SD[s, 2] = tx * ox[s], tx * oy[s], tx
-        SD[s, 3], SD[s, 4], SD[s, 5] = ty * ox[s], ty * oy[s], ty
+        SD[0, s], SD[1, s], SD[2, s] = tx * ox[s], tx * oy[s], tx
+        SD[3, s], SD[4, s], SD[5, s] = ty * ox[s], ty * oy[s], ty
     weakest = 0.5 * (gxx + gyy) - np.sqrt(0.25 * (gxx - gyy) ** 2 + gxy * gxy)
     if weakest <= (NOISE_GREY / PLAIN_PX) ** 2:
         result[0], result[1], result[2] = bx, by, UNALIGNED
@@ -173,7 +178,7 @@ def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window,
             result[0], result[1], result[2] = sx, sy, ALIGNED
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=SUMS)
 def _iterate(current, w, Tn, SD, Hinv, affine, tx, ty, bx, by, ox, oy, iters, max_shift_px):
     """Inverse compositional steps from the shift (tx, ty); (tx, ty, last step), the step inf
     where the warp degenerates or runs farther than max_shift_px from (bx, by)."""
@@ -181,6 +186,7 @@ def _iterate(current, w, Tn, SD, Hinv, affine, tx, ty, bx, by, ox, oy, iters, ma
     a00, a01, a10, a11 = 1.0, 0.0, 0.0, 1.0
     I = np.empty(S)
     In = np.empty(S)
+    err = np.empty(S)
     step = np.inf
     d = np.zeros(6)
     r = np.zeros(6)
@@ -206,11 +212,13 @@ def _iterate(current, w, Tn, SD, Hinv, affine, tx, ty, bx, by, ox, oy, iters, ma
                 I[s] = _blend(current, r0, r1, c0, c1, fx, fy)
         _normalise(I, w, In)
         if affine:
-            r[:] = 0.0
             for s in range(S):
-                e = w[s] * (In[s] - Tn[s])
-                for k in range(6):
-                    r[k] += SD[s, k] * e
+                err[s] = w[s] * (In[s] - Tn[s])
+            for k in range(6):
+                acc = 0.0
+                for s in range(S):
+                    acc += SD[k, s] * err[s]
+                r[k] = acc
             for i in range(6):
                 d[i] = 0.0
                 for j in range(6):
@@ -219,8 +227,8 @@ def _iterate(current, w, Tn, SD, Hinv, affine, tx, ty, bx, by, ox, oy, iters, ma
             r2 = r5 = 0.0
             for s in range(S):
                 e = w[s] * (In[s] - Tn[s])
-                r2 += SD[s, 2] * e
-                r5 += SD[s, 5] * e
+                r2 += SD[2, s] * e
+                r5 += SD[5, s] * e
             d[2] = Hinv[0, 0] * r2 + Hinv[0, 1] * r5
             d[5] = Hinv[1, 0] * r2 + Hinv[1, 1] * r5
         # W <- W o W(d)^-1
