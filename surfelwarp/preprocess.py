@@ -1,6 +1,7 @@
 """Depth preprocessing (SurfelWarp Sec. V): one depth image -> a CameraObservation."""
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numba
@@ -164,14 +165,18 @@ def _normals(v, depth, normals, valid):
             valid[y, x] = True
 
 
+@functools.lru_cache(maxsize=4)
 def confidence_map(intrinsics: Intrinsics, phi: float) -> np.ndarray:
     """c = exp(-gamma^2 / 2 phi^2), gamma the pixel's radial distance from the image centre,
-    normalised to 1 at the image corner (Keller et al. 2013)."""
+    normalised to 1 at the image corner (Keller et al. 2013). The same for every frame of a
+    camera: made once (read-only)."""
     h, w = intrinsics.height, intrinsics.width
     u = np.arange(w, dtype=np.float32) - intrinsics.cx
     v = np.arange(h, dtype=np.float32) - intrinsics.cy
     gamma2 = (u[None, :] ** 2 + v[:, None] ** 2) / (intrinsics.cx ** 2 + intrinsics.cy ** 2)
-    return np.exp(-gamma2 / (2.0 * phi * phi)).astype(np.float32)
+    out = np.exp(-gamma2 / (2.0 * phi * phi)).astype(np.float32)
+    out.flags.writeable = False
+    return out
 
 
 def radius_map(depth_m: np.ndarray, normals: np.ndarray, intrinsics: Intrinsics,

@@ -88,3 +88,34 @@ def test_trigger_reads_both_fractions():
 
     assert fired(good) == [] and fired(only_unexplained) == [] and fired(None) == []
     assert fired(slid) == [9, 19] and fired(only_unsupported) == [9, 19]    # min_interval_frames apart
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("window_px", [1, 2])
+def test_compiled_window_searches_equal_the_numpy_references(dtype, window_px):
+    """A bumpy wall with holes and model points scattered about the 1 cm gate (half of them
+    within a float32 step of it): the compiled searches give the references' booleans exactly."""
+    from surfelwarp.tracking.alignment import explained_pixels_reference, model_support_reference
+    rng = np.random.default_rng(3)
+    rows, cols = np.mgrid[0:INTR.height, 0:INTR.width]
+    depth = (1.0 + 0.05 * np.sin(cols / 7.0) * np.cos(rows / 5.0)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.1] = 0
+    depth[40:60, 30:70] = 0
+    obs = preprocess(depth, INTR, 0, 0)
+    pick = rng.choice(obs.num_valid, 3000)
+    pts = obs.vertex_map[obs.valid][pick].astype(np.float64)
+    offset = rng.normal(0, 0.008, (len(pts), 3))
+    at_gate = rng.random(len(pts)) < 0.5
+    offset[at_gate] *= 0.01 / np.linalg.norm(offset[at_gate], axis=1, keepdims=True)
+    pts = (pts + offset + rng.normal(0, 0.002, (len(pts), 3)) * [1, 1, 0]).astype(dtype)
+    normals = np.where(rng.random((len(pts), 1)) < 0.8, [0.0, 0.0, -1.0], [0.0, 0.0, 1.0]).astype(dtype)
+    params = AlignmentParams(window_px=window_px)
+    args = (obs.vertex_map, obs.valid, INTR, params)
+    explained = explained_pixels(pts, *args)
+    assert np.array_equal(explained, explained_pixels_reference(pts, *args))
+    assert 0.05 < explained.sum() / obs.num_valid < 0.98
+    args = (obs.depth_m, obs.vertex_map, obs.valid, INTR, params)
+    judged, supported = model_support(pts, normals, *args)
+    ref_judged, ref_supported = model_support_reference(pts, normals, *args)
+    assert np.array_equal(judged, ref_judged) and np.array_equal(supported, ref_supported)
+    assert 0.1 < supported.sum() / judged.sum() < 0.9

@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from surfelwarp.geometry.camera import KINECT_AXIAL_NOISE, axial_noise_sigma_m
-from surfelwarp.methods.surfelwarp.fusion_kernels import best_in_windows, mark_redundant
+from surfelwarp.methods.surfelwarp.fusion_kernels import best_in_windows, fuse_rows, mark_redundant
 from surfelwarp.methods.surfelwarp.surfels import SurfelModel
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.render.base import FAR_M, NEAR_M
@@ -105,13 +105,16 @@ def find_correspondences(maps: FusionMaps, obs: CameraObservation, live_confiden
     fine_h, fine_w = maps.index.shape
     if (fine_h, fine_w) != (s * obs.valid.shape[0], s * obs.valid.shape[1]):
         raise ValueError(f"index map {maps.index.shape} is not {s}x the depth map {obs.valid.shape}")
-    rows, cols = np.nonzero(obs.valid)
+    pix = np.flatnonzero(obs.valid)
+    rows, cols = np.divmod(pix, obs.valid.shape[1])
     best_k = np.empty(len(rows), np.int64)
     best_d2 = np.empty(len(rows), np.float32)
+    # Row gathers by np.take on flat pixel indices: several times faster than fancy indexing.
+    vertex, normal = (np.take(a.reshape(-1, 3), pix, axis=0) for a in (obs.vertex_map, obs.normal_map))
     best_in_windows(maps.index, _window_origin(rows, s, w), _window_origin(cols, s, w), w,
                     np.ascontiguousarray(maps.points, np.float32), np.ascontiguousarray(maps.normals, np.float32),
-                    obs.vertex_map[rows, cols], obs.normal_map[rows, cols],
-                    distance_gate_m(obs.depth_m[rows, cols], params) ** 2, np.float32(params.normal_threshold),
+                    vertex, normal, distance_gate_m(np.take(obs.depth_m, pix), params) ** 2,
+                    np.float32(params.normal_threshold),
                     np.ascontiguousarray(live_confidence, np.float32), best_k, best_d2)
     found = best_k >= 0
     rows, cols, best_k, best_d2 = rows[found], cols[found], best_k[found], best_d2[found]
@@ -130,15 +133,42 @@ def fuse(model: SurfelModel, T_camera_to_world: np.ndarray, obs: CameraObservati
     """Eq. 5: confidence-weighted averages of live position, normal (renormalised), radius and
     (with obs.color) colour, summed confidence, t_observed = time. Returns the new model and the
     (H, W) mask of fused pixels. The surfel indices in `corr` must be distinct
-    (find_correspondences ensures it)."""
+    (find_correspondences ensures it). fuse_reference's result, its per-surfel updates in one
+    compiled pass (a twist-limb frame, 264k pairs with colour: 66 -> 19 ms)."""
     rows, cols, k = corr
-    # float32 throughout: the weights are well conditioned and float64 costs here ~3x. Row
-    # gathers by np.take on flat pixel indices: several times faster than fancy indexing.
+    pix, depth_v, depth_n = _depth_in_world(obs, rows, cols, T_camera_to_world)
+    out = {name: getattr(model, name).copy() for name in _FUSED}
+    depth_color = np.zeros((0, 3), np.uint8) if obs.color is None else obs.color.reshape(-1, 3)
+    fuse_rows(np.asarray(k, np.int64), pix, depth_v, depth_n, obs.confidence_map.reshape(-1),
+              obs.radius_map.reshape(-1), depth_color, np.int32(time), *out.values())
+    if obs.color is None:
+        del out["color"], out["color_weight"]
+    fused = np.zeros(obs.valid.shape, bool)
+    fused[rows, cols] = True
+    return replace(model, **out), fused
+
+
+_FUSED = ("live_position", "live_normal", "radius", "confidence", "t_observed", "color", "color_weight")
+
+
+def _depth_in_world(obs: CameraObservation, rows: np.ndarray, cols: np.ndarray, T_camera_to_world: np.ndarray):
+    """The pixels' flat indices and their depth vertices and normals (n, 3) in world, float32
+    (the weights are well conditioned and float64 costs here ~3x)."""
     T = np.asarray(T_camera_to_world, np.float64)
     R, t = T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
     pix = rows * obs.valid.shape[1] + cols
+    # Row gathers by np.take on flat pixel indices: several times faster than fancy indexing.
     depth_v = np.take(obs.vertex_map.reshape(-1, 3), pix, axis=0) @ R.T + t
     depth_n = np.take(obs.normal_map.reshape(-1, 3), pix, axis=0) @ R.T
+    return pix, depth_v, depth_n
+
+
+def fuse_reference(model: SurfelModel, T_camera_to_world: np.ndarray, obs: CameraObservation,
+                   corr: Correspondences, time: int, params: FusionParams = FusionParams()
+                   ) -> tuple[SurfelModel, np.ndarray]:
+    """fuse in numpy, a pass an expression (what the tests compare it with)."""
+    rows, cols, k = corr
+    pix, depth_v, depth_n = _depth_in_world(obs, rows, cols, T_camera_to_world)
     c_depth = np.take(obs.confidence_map, pix)
     c_old = np.take(model.confidence, k)
     c_new = c_old + c_depth

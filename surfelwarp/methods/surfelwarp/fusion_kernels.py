@@ -74,3 +74,36 @@ def mark_redundant(index, surfels, fine_rows, fine_cols, reach, position, normal
                         drop[j] = True
                     else:
                         drop[i] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def fuse_rows(k, pix, depth_v, depth_n, depth_conf, depth_radius, depth_color, time, position, normal, radius,
+              confidence, t_observed, color, color_weight):
+    """Eq. 5 for pair p (surfel k[p], depth pixel pix[p]; its vertex and normal depth_v[p],
+    depth_n[p] in world) into the model's arrays (copies), in float32 and in the order of
+    fusion.fuse_reference's numpy expressions, so that the results agree to the bit. Colour
+    (depth_color (H*W, 3), empty without it) fuses with its own weight."""
+    tiny, floor = np.float32(1e-30), np.float32(1e-12)
+    for p in range(len(k)):
+        i, c_depth = k[p], depth_conf[pix[p]]
+        c_old = confidence[i]
+        c_new = c_old + c_depth
+        a = c_old / max(c_new, tiny)
+        b = c_depth / max(c_new, tiny)
+        n0 = a * normal[i, 0] + b * depth_n[p, 0]
+        n1 = a * normal[i, 1] + b * depth_n[p, 1]
+        n2 = a * normal[i, 2] + b * depth_n[p, 2]
+        norm = max(np.sqrt(n0 * n0 + n1 * n1 + n2 * n2), floor)
+        normal[i, 0], normal[i, 1], normal[i, 2] = n0 / norm, n1 / norm, n2 / norm
+        for j in range(3):
+            position[i, j] = a * position[i, j] + b * depth_v[p, j]
+        radius[i] = a * radius[i] + b * depth_radius[pix[p]]
+        confidence[i] = c_new
+        t_observed[i] = time
+        if len(depth_color):
+            w_new = color_weight[i] + c_depth
+            step = c_depth / max(w_new, tiny)
+            for j in range(3):
+                old = color[i, j]
+                color[i, j] = old + step * (np.float32(depth_color[pix[p], j]) - old)
+            color_weight[i] = w_new

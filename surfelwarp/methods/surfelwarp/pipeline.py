@@ -24,7 +24,7 @@ from surfelwarp.geometry.se3 import invert, transform_surfels
 from surfelwarp.io.outputs import FrameRecord
 from surfelwarp.io.ply import vertex_table, write_atomic
 from surfelwarp.methods.surfelwarp.appending import append_candidates
-from surfelwarp.methods.surfelwarp.fusion import find_correspondences, fuse, removal_mask, remove, unmatched_depth_pixels
+from surfelwarp.methods.surfelwarp.fusion import find_correspondences, fuse, removal_mask, unmatched_depth_pixels
 from surfelwarp.methods.surfelwarp.params import SurfelWarpParams
 from surfelwarp.methods.surfelwarp.reinit import ReinitTrigger, unsupported_mask
 from surfelwarp.methods.surfelwarp.surfels import SurfelModel
@@ -175,7 +175,7 @@ class SurfelWarpMethod:
             carved = self.tracker.free_space(obs, T).seen_through(m.live_position, m.live_normal,
                                                                   p.fusion.carve_beyond_m)
         unstable_or_redundant = removal_mask(m, maps, now, p.fusion, T) | carved
-        m = remove(m, unstable_or_redundant).concatenate(added.surfels(now, self._next_id))
+        m = m.select_then(~unstable_or_redundant, added.surfels(now, self._next_id))
         self._next_id += len(added)
         fused = np.concatenate([fused[~unstable_or_redundant], np.zeros(len(added), bool)])
         timer.lap("remove")

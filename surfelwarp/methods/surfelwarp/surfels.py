@@ -43,6 +43,19 @@ class SurfelModel:
         return SurfelModel(**{f.name: np.concatenate([getattr(self, f.name), getattr(other, f.name)])
                               for f in fields(self)})
 
+    def select_then(self, which: np.ndarray, other: "SurfelModel") -> "SurfelModel":
+        """select(which).concatenate(other) in one copy of the kept rows (a frame's removal
+        and appending: two whole-model copies were ~12 ms on 270k surfels)."""
+        which = np.asarray(which)
+        rows = np.flatnonzero(which) if which.dtype == bool else which
+        out = {}
+        for f in fields(self):
+            mine, theirs = getattr(self, f.name), getattr(other, f.name)
+            a = out[f.name] = np.empty((len(rows) + len(theirs),) + mine.shape[1:], np.result_type(mine, theirs))
+            np.take(mine, rows, axis=0, out=a[:len(rows)])
+            a[len(rows):] = theirs
+        return SurfelModel(**out)
+
     @staticmethod
     def from_points(position, normal, radius, confidence, time: int, first_id: int, k: int = 4,
                     color=None) -> "SurfelModel":

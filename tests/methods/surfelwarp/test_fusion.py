@@ -364,3 +364,44 @@ def test_compiled_searches_equal_a_per_pixel_reference():
                 if np.sum((points[j] - points[i]) ** 2) < limit * limit and normals[j] @ normals[i] > np.float32(0.95):
                     expected[j if conf[j] < conf[i] or (conf[j] == conf[i] and j > i) else i] = True
     assert drop.any() and np.array_equal(drop, expected)
+
+
+@pytest.mark.parametrize("colour", [False, True])
+def test_compiled_fuse_equals_the_numpy_reference(gl, obs, colour):
+    """Random confidences, colours and colour weights (some surfels never seen in colour), half
+    the surfels matched: the compiled fuse gives fuse_reference's model to the bit."""
+    from dataclasses import fields
+
+    from surfelwarp.methods.surfelwarp.fusion import Correspondences, fuse_reference
+    rng = np.random.default_rng(5)
+    image = rng.integers(0, 256, (K.height, K.width, 3), dtype=np.uint8)
+    seen = replace(obs, color=image) if colour else obs
+    base = model_from(obs, confidence=rng.uniform(0.5, 30, obs.num_valid).astype(np.float32))
+    model = with_live(base, along_rays(base, 0.003), tilted(base.live_normal.astype(np.float64), np.deg2rad(15)))
+    model = replace(model, color=rng.uniform(0, 255, (len(model), 3)).astype(np.float32),
+                    color_weight=np.where(rng.random(len(model)) < 0.3, 0, rng.uniform(1, 20, len(model)))
+                    .astype(np.float32))
+    rows, cols = np.nonzero(obs.valid)
+    pick = np.sort(rng.choice(len(rows), len(rows) // 2, replace=False))
+    corr = Correspondences(rows[pick], cols[pick], rng.permutation(len(model))[: len(pick)].astype(np.int64))
+    new, fused = fuse(model, T_CAM, seen, corr, time=5)
+    ref, ref_fused = fuse_reference(model, T_CAM, seen, corr, time=5)
+    assert np.array_equal(fused, ref_fused) and fused.sum() == len(pick)
+    for f in fields(new):
+        got, want = getattr(new, f.name), getattr(ref, f.name)
+        assert got.dtype == want.dtype and np.array_equal(got, want), f.name
+    assert not np.array_equal(new.color, model.color) if colour else new.color is model.color
+
+
+def test_one_copy_of_the_kept_surfels_then_the_new_ones(obs):
+    """select_then (the frame's removal and appending at once) is select, then concatenate."""
+    from dataclasses import fields
+    rng = np.random.default_rng(2)
+    model = model_from(obs, confidence=rng.uniform(1, 9, obs.num_valid).astype(np.float32))
+    new = model_from(obs, time=3).select(rng.choice(len(model), 50, replace=False))
+    for keep in (rng.random(len(model)) < 0.7, np.flatnonzero(rng.random(len(model)) < 0.2)):
+        got, want = model.select_then(keep, new), model.select(keep).concatenate(new)
+        assert len(got) == len(want) > len(new)
+        for f in fields(got):
+            a, b = getattr(got, f.name), getattr(want, f.name)
+            assert a.dtype == b.dtype and np.array_equal(a, b), f.name
