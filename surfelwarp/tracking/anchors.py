@@ -38,6 +38,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
 
 from surfelwarp.deform.warp_field import WarpField, to_global, to_local
@@ -115,14 +116,24 @@ def seen_directions(num_nodes: int, knn: np.ndarray, weights: np.ndarray, normal
     the pairs' n n^T over the pairs' nodes knn (C, K) and weights (C, K), normals (C, 3), scaled
     to a largest eigenvalue of 1 (a plane: n n^T; a cylinder: all but its axis; a ball: the
     identity); 0 for a node without pairs."""
-    n = np.asarray(normals, np.float64)
-    nn = (n[:, :, None] * n[:, None, :]).reshape(-1, 9)
-    k = knn.shape[1]
-    w = np.asarray(weights, np.float64).ravel()
-    S = np.stack([np.bincount(knn.ravel(), w * np.repeat(nn[:, e], k), minlength=num_nodes) for e in range(9)], 1)
+    S = np.zeros((num_nodes, 9))
+    _sum_outer(np.ascontiguousarray(knn, np.int64), np.ascontiguousarray(weights, np.float64),
+               np.ascontiguousarray(normals, np.float64), S)
     S = S.reshape(-1, 3, 3)
     top = np.linalg.eigvalsh(S)[:, -1]
     return S / np.where(top > 0, top, 1.0)[:, None, None]
+
+
+@numba.njit(cache=True, nogil=True)
+def _sum_outer(knn, weights, n, S):
+    """S[node] += w n n^T for each pair's nodes, pair after pair: the order (and so every bit)
+    of np.bincount's sums over the raveled knn, nine of which took ~4 ms a sheet frame."""
+    for c in range(knn.shape[0]):
+        for s in range(knn.shape[1]):
+            node, w = knn[c, s], weights[c, s]
+            for a in range(3):
+                for b in range(3):
+                    S[node, 3 * a + b] += w * (n[c, a] * n[c, b])
 
 
 def seen_deviation_m(transforms: np.ndarray, rest: np.ndarray, sigma_m: float, seen: np.ndarray) -> np.ndarray:

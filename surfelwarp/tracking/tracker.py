@@ -182,7 +182,9 @@ class Tracker:
         NaN in the map) of the skinning knn/weights."""
         hit = index_map >= 0
         out = np.full(index_map.shape, np.nan, np.float32)
-        out[hit] = self.stillness(knn[index_map[hit]], weights[index_map[hit]])
+        shown = index_map[hit]
+        # np.take: row gathers several times faster than fancy indexing.
+        out[hit] = self.stillness(np.take(knn, shown, axis=0), np.take(weights, shown, axis=0))
         return out
 
     def colour_pairs(self, matches: AnchoredMatches | None, surfels: SurfelSet, field: WarpField

@@ -175,6 +175,23 @@ def test_seen_directions_of_a_plane_a_cylinder_and_a_ball():
     assert seen_deviation_m(slide, rest, sigma, seen)[3] == 0.0
 
 
+def test_seen_directions_sum_as_bincount_does():
+    """The compiled sums equal, to the bit, np.bincount's over the raveled pairs (their numpy
+    form): random nodes, weights and normals, nodes repeated within a pair."""
+    rng = np.random.default_rng(6)
+    m, c, k = 30, 5000, 4
+    knn = rng.integers(0, m - 2, (c, k))                        # the last two nodes see nothing
+    weights = rng.uniform(0, 1, (c, k)).astype(np.float32)
+    normals = rng.normal(size=(c, 3))
+    nn = (normals[:, :, None] * normals[:, None, :]).reshape(-1, 9)
+    w = weights.astype(np.float64).ravel()
+    S = np.stack([np.bincount(knn.ravel(), w * np.repeat(nn[:, e], k), minlength=m) for e in range(9)], 1)
+    S = S.reshape(-1, 3, 3)
+    top = np.linalg.eigvalsh(S)[:, -1]
+    expected = S / np.where(top > 0, top, 1.0)[:, None, None]
+    assert np.array_equal(seen_directions(m, knn, weights, normals), expected)
+
+
 def test_nodes_outside_the_solve_follow_the_common_motion():
     """A still sheet seen under a pose error, with part of the field 1 m to the side, out of
     view and out of the solve: its nodes move with the common motion as the seen ones do (as
