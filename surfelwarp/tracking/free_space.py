@@ -254,7 +254,7 @@ def _components(points: np.ndarray) -> np.ndarray:
 def _ball_widths(radius_px: int) -> np.ndarray:
     """Half-widths of the rows dy = -radius..radius of the pixels within chamfer distance
     radius_px of a pixel (the ball the occluder test's transform looks into). Made once: ~1k
-    calls into a compiled function, ~2 ms a frame on small scenes."""
+    calls into a compiled function, 1.4 ms a touch frame when made with each observation."""
     r = int(radius_px)
     out = np.array([max(dx for dx in range(r + 1) if _chamfer(dy, dx) <= r) for dy in range(-r, r + 1)], np.int64)
     out.flags.writeable = False
