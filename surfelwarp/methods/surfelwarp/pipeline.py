@@ -175,9 +175,10 @@ class SurfelWarpMethod:
             carved = self.tracker.free_space(obs, T).seen_through(m.live_position, m.live_normal,
                                                                   p.fusion.carve_beyond_m)
         unstable_or_redundant = removal_mask(m, maps, now, p.fusion, T) | carved
-        m = m.select_then(~unstable_or_redundant, added.surfels(now, self._next_id))
+        kept = ~unstable_or_redundant
+        m = m.select_then(kept, added.surfels(now, self._next_id))
         self._next_id += len(added)
-        fused = np.concatenate([fused[~unstable_or_redundant], np.zeros(len(added), bool)])
+        fused = np.concatenate([fused[kept], np.zeros(len(added), bool)])
         timer.lap("remove")
 
         # Sec. IV: the fused live surfels back to the reference frame (Eq. 3).

@@ -34,8 +34,7 @@ class SurfelModel:
 
     def select(self, which: np.ndarray) -> "SurfelModel":
         """The surfels picked by a boolean mask or an index array, in that order."""
-        which = np.asarray(which)
-        rows = np.flatnonzero(which) if which.dtype == bool else which
+        rows = _rows(which)
         # np.take of rows is several times faster than boolean indexing of (N, c) arrays.
         return SurfelModel(**{f.name: np.take(getattr(self, f.name), rows, axis=0) for f in fields(self)})
 
@@ -46,8 +45,7 @@ class SurfelModel:
     def select_then(self, which: np.ndarray, other: "SurfelModel") -> "SurfelModel":
         """select(which).concatenate(other) in one copy of the kept rows (a frame's removal
         and appending: two whole-model copies were ~12 ms on 270k surfels)."""
-        which = np.asarray(which)
-        rows = np.flatnonzero(which) if which.dtype == bool else which
+        rows = _rows(which)
         out = {}
         for f in fields(self):
             mine, theirs = getattr(self, f.name), getattr(other, f.name)
@@ -74,3 +72,9 @@ class SurfelModel:
                            np.full(n, time, np.int32), np.full(n, time, np.int32),
                            np.zeros((n, k), np.int32), np.zeros((n, k), np.float32),
                            np.arange(first_id, first_id + n, dtype=np.uint32), color, color_weight)
+
+
+def _rows(which: np.ndarray) -> np.ndarray:
+    """Row indices of a boolean mask or an index array, in that order."""
+    which = np.asarray(which)
+    return np.flatnonzero(which) if which.dtype == bool else which
