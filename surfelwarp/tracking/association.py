@@ -31,18 +31,50 @@ class DepthTargets:
         self.T_wc = invert(T_cw)
         self.intrinsics = intrinsics
         self.shape = np.shape(depth_valid)
-        pixels = np.flatnonzero(np.asarray(depth_valid, bool))
-        self.column = np.full(int(np.prod(self.shape)), -1, np.int64)
-        self.column[pixels] = np.arange(len(pixels))
-        R, t = T_cw[:3, :3], T_cw[:3, 3]
-        vertex = np.asarray(depth_vertex_map).reshape(-1, 3)[pixels].T.astype(np.float64)
-        normal = np.asarray(depth_normal_map).reshape(-1, 3)[pixels].T.astype(np.float64)
+        valid = np.asarray(depth_valid, bool)
         # Each pixel's world vertex and normal side by side (V, 6): the compiled association
         # reads them at once (six rows apart, 4-8x slower, as the rows share cache sets).
-        self.packed = np.empty((len(pixels), 6))
-        self.packed[:, :3] = np.transpose(rigid_components(R, t, vertex))
-        self.packed[:, 3:] = np.transpose(rigid_components(R, np.zeros(3), normal))
+        self.column = np.empty(valid.size, np.int64)
+        self.packed = np.empty((int(np.count_nonzero(valid)), 6))
+        _pack(np.asarray(depth_vertex_map), np.asarray(depth_normal_map), valid, np.ascontiguousarray(T_cw[:3, :3]),
+              np.ascontiguousarray(T_cw[:3, 3]), self.column, self.packed)
         self.vertex, self.normal = self.packed[:, :3].T, self.packed[:, 3:].T
+
+
+def pack_reference(depth_vertex_map, depth_normal_map, depth_valid, T_camera_to_world):
+    """DepthTargets' (column, packed) in numpy passes (what the tests compare _pack with)."""
+    T_cw = np.asarray(T_camera_to_world, np.float64)
+    pixels = np.flatnonzero(np.asarray(depth_valid, bool))
+    column = np.full(np.size(depth_valid), -1, np.int64)
+    column[pixels] = np.arange(len(pixels))
+    R, t = T_cw[:3, :3], T_cw[:3, 3]
+    vertex = np.asarray(depth_vertex_map).reshape(-1, 3)[pixels].T.astype(np.float64)
+    normal = np.asarray(depth_normal_map).reshape(-1, 3)[pixels].T.astype(np.float64)
+    packed = np.empty((len(pixels), 6))
+    packed[:, :3] = np.transpose(rigid_components(R, t, vertex))
+    packed[:, 3:] = np.transpose(rigid_components(R, np.zeros(3), normal))
+    return column, packed
+
+
+@numba.njit(cache=True, nogil=True)
+def _pack(vertex, normal, valid, R, t, column, packed):
+    """pack_reference in one pass over the pixels, its products and sums in the same order (the
+    same bits): on a 7-Scenes frame ~3.5 ms against ~58 ms for its gathers, casts and
+    transposes."""
+    h, w = valid.shape
+    k = 0
+    for y in range(h):
+        for x in range(w):
+            if not valid[y, x]:
+                column[y * w + x] = -1
+                continue
+            column[y * w + x] = k
+            v0, v1, v2 = np.float64(vertex[y, x, 0]), np.float64(vertex[y, x, 1]), np.float64(vertex[y, x, 2])
+            n0, n1, n2 = np.float64(normal[y, x, 0]), np.float64(normal[y, x, 1]), np.float64(normal[y, x, 2])
+            for i in range(3):
+                packed[k, i] = v0 * R[i, 0] + v1 * R[i, 1] + v2 * R[i, 2] + t[i]
+                packed[k, 3 + i] = n0 * R[i, 0] + n1 * R[i, 1] + n2 * R[i, 2] + 0.0
+            k += 1
 
 
 def rigid_components(R: np.ndarray, t: np.ndarray, p) -> list[np.ndarray]:

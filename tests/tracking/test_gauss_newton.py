@@ -293,6 +293,20 @@ def test_compiled_association_equals_the_numpy_reference(problem):
     assert got.points.strides == ref.points.strides and got.normals.strides == ref.normals.strides
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_compiled_depth_targets_equal_the_numpy_reference(problem, dtype):
+    """The depth pixels moved to world in one compiled pass: the same columns and the same bits
+    as pack_reference's numpy passes, for maps of either precision and a turned, shifted camera."""
+    from surfelwarp.tracking.association import DepthTargets, pack_reference
+    vertex, normals, valid = (np.asarray(m, dtype) if m.dtype != bool else m for m in problem.maps)
+    assert 0.1 * valid.size < valid.sum() < valid.size
+    targets = DepthTargets(vertex, normals, valid, INTR, T_CW)
+    column, packed = pack_reference(vertex, normals, valid, T_CW)
+    assert np.array_equal(targets.column, column)
+    assert np.array_equal(targets.packed, packed)
+    assert np.array_equal(targets.vertex, packed[:, :3].T) and np.array_equal(targets.normal, packed[:, 3:].T)
+
+
 def test_one_iteration_with_500_nodes_and_20k_pairs():
     """Printed, not asserted, time: speed goals live in bench_nonrigid (the machine may be shared)."""
     prob = Problem(node_radius_m=0.0195)
