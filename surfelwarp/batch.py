@@ -43,24 +43,33 @@ class TaskResult:
 
 
 def unique_names(inputs: list[Path]) -> list[str]:
-    """Each input folder's name, with -2, -3, ... where two share one."""
-    names, seen = [], {}
-    for path in inputs:
-        base = Path(path).resolve().name or "sequence"
-        seen[base] = seen.get(base, 0) + 1
-        names.append(base if seen[base] == 1 else f"{base}-{seen[base]}")
+    """Each input folder's name, with -2, -3, ... where two share one. A suffix skips the names
+    other inputs have (a/seq, b/seq, seq-2 -> seq, seq-3, seq-2): no two share an output folder."""
+    bases = [Path(path).resolve().name or "sequence" for path in inputs]
+    taken = set(bases)
+    names, seen = [], set()
+    for base in bases:
+        name, k = base, 1
+        while name in seen or (name != base and name in taken):
+            k += 1
+            name = f"{base}-{k}"
+        seen.add(name)
+        taken.add(name)
+        names.append(name)
     return names
 
 
-def _complete(out: Path, identity: dict, frames: int) -> dict | None:
-    """metrics.json of a finished run of the same input and parameters in `out`, else None."""
+def _complete(out: Path, identity: dict, frames: int, render: bool = True) -> dict | None:
+    """metrics.json of a finished run of the same input and parameters in `out`, with the
+    renders if `render` (a run with --no-render is not complete for a batch that wants them),
+    else None."""
     from surfelwarp.io.checkpoint import run_identity
     try:
         metrics = json.loads((out / "metrics.json").read_text())
     except (OSError, ValueError):
         return None
     # model_mesh.ply is written after model.ply and before the last metrics.json
-    if not (out / "model_mesh.ply").is_file() or "error" in metrics:
+    if not (out / "model_mesh.ply").is_file() or "error" in metrics or (render and not (out / "live.mp4").is_file()):
         return None
     done = run_identity(metrics.get("method"), Path(metrics.get("input", "")), metrics.get("config", {}))
     summary = metrics.get("summary", {})
@@ -82,7 +91,7 @@ def run_task(name: str, input_path: str, out: str, prepare: Callable[[str, str],
         seq, method = setup["seq"], setup["method"]
         config = run_config(method, setup["save_every"], setup["preprocess_params"], setup["input_config"])
         identity = run_identity(method.name, seq.root, config)
-        done = _complete(Path(out), identity, len(seq))
+        done = _complete(Path(out), identity, len(seq), setup["render"])
         if done is not None:
             summary = done["summary"]
             result = TaskResult(name, input_path, "skipped", summary["frames"], summary["median_frame_seconds"],
@@ -123,9 +132,17 @@ def _evaluate(out: Path, seq_root: Path) -> dict:
         doc = evaluate(out, seq_root)
     except InputError:
         return {}
-    figures = {k: doc["average"].get(k) for k in ("epe_mean_mm", "accuracy_median_mm", "completeness_10mm_pct")}
-    figures["ate_cm"] = doc.get("trajectory", {}).get("ate_cm")
+    # In metres, as every output of a run (CONTRACT.md); eval.json itself reads in mm and cm.
+    average, trajectory = doc["average"], doc.get("trajectory", {})
+    figures = {"epe_mean_m": _scaled(average.get("epe_mean_mm"), 1e-3),
+               "accuracy_median_m": _scaled(average.get("accuracy_median_mm"), 1e-3),
+               "completeness_10mm_pct": average.get("completeness_10mm_pct"),
+               "ate_m": _scaled(trajectory.get("ate_cm"), 1e-2)}
     return {k: v for k, v in figures.items() if v is not None}
+
+
+def _scaled(value: float | None, scale: float) -> float | None:
+    return None if value is None else value * scale
 
 
 def batch(inputs: list[Path], out_dir: Path, prepare: Callable[[str, str], dict], workers: int = 2,

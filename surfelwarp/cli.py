@@ -100,8 +100,9 @@ def _preprocess_params(args: argparse.Namespace):
         params = replace(params, clip_near_m=args.clip_near)
     if args.clip_far is not None:
         params = replace(params, clip_far_m=args.clip_far)
-    if not 0 <= params.clip_near_m < params.clip_far_m:
-        raise InputError(None, f"--clip-near {params.clip_near_m} must be >= 0 and below --clip-far {params.clip_far_m}")
+    if not 0 <= params.clip_near_m < params.clip_far_m < float("inf"):
+        raise InputError(None, f"--clip-near {params.clip_near_m} must be >= 0 and below --clip-far {params.clip_far_m}, "
+                               "which must be finite")
     return params
 
 
@@ -282,7 +283,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
     from surfelwarp.batch import batch
 
-    _check_folder(args.out)
+    for path in args.inputs:     # DIR inside an INPUT would write into that input
+        check_out_folder(path, args.out)
     _params(args), _preprocess_params(args), _intrinsics(args)   # bad flags end the batch before it starts
     results = batch(args.inputs, args.out, partial(batch_setup, run_flags(args)), args.workers, args.scheduler,
                     False if args.no_progress else None)
@@ -292,8 +294,16 @@ def cmd_batch(args: argparse.Namespace) -> int:
     return 1 if counts["failed"] else 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its usage errors on one line (CONTRACT.md: one clear message), not after
+    the usage block; subcommands' parsers are of this class too."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} -h)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="surfelwarp", description=__doc__)
+    parser = _Parser(prog="surfelwarp", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="reconstruct a depth sequence")
     _add_run_arguments(p)

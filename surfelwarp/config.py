@@ -14,7 +14,8 @@ InputError naming the file and the key. Every number (and every entry of a list 
 must be finite and positive; a params class names in class attributes the exceptions and
 bounds: `ZERO_OK` (0 is meaningful: a weight that turns a term off, a tolerance), `UNIT` (at
 most 1: cosines, shares, fractions), `AT_MOST` (name -> largest sensible value: pixel windows,
-counts that size an allocation), and `CHOICES` (the values a string field may take); a
+counts that size an allocation; a length, a name ending in `_m`, is at most LENGTH_AT_MOST_M
+unless named there), and `CHOICES` (the values a string field may take); a
 `problems()` method adds constraints between values (key -> whether it is out of range, or
 what is wrong with it).
 """
@@ -28,6 +29,11 @@ from dataclasses import fields, is_dataclass, replace
 from pathlib import Path
 
 from surfelwarp.errors import InputError
+
+
+# Metres beyond what a depth camera sees: no node radius or gate is longer. Without a bound a
+# node radius of 1e300 ran to the end and wrote NaN positions.
+LENGTH_AT_MOST_M = 10.0
 
 
 def _bad(path, key: str, problem: str) -> InputError:
@@ -120,7 +126,8 @@ def range_problem(params, name: str) -> str | None:
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
         return None
     low_ok = name in getattr(cls, "ZERO_OK", ())
-    high = 1 if name in getattr(cls, "UNIT", ()) else getattr(cls, "AT_MOST", {}).get(name)
+    length = LENGTH_AT_MOST_M if name.endswith("_m") else None
+    high = 1 if name in getattr(cls, "UNIT", ()) else getattr(cls, "AT_MOST", {}).get(name, length)
     for v in values:
         if not math.isfinite(v) or v < 0 or (v == 0 and not low_ok) or (high is not None and v > high):
             span = f"{'[0' if low_ok else '(0'}, {'inf)' if high is None else f'{high}]'}"

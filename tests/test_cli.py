@@ -31,6 +31,10 @@ def test_observe_run_writes_the_contract(tmp_path):
         assert frame["frame"] == i and frame["reference_frame"] == i
         assert np.allclose(frame["camera_to_world"], np.eye(4))
         assert {"preprocess", "total"} <= frame["seconds"].keys()
+        # total is the whole frame: its stages, and on a saved frame its writing, add up within it
+        parts = {k: v for k, v in frame["seconds"].items() if k != "total"}
+        assert sum(parts.values()) <= frame["seconds"]["total"] + 1e-5
+        assert ({"write", "render"} <= parts.keys()) == (i % 2 == 0)
         assert frame["surfels"] > 1000
         assert {"nodes", "gauss_newton_iterations", "energy", "reinitialized"} <= frame.keys()
     assert metrics["config"]["preprocess"]["clip_far_m"] == 3.0
@@ -128,8 +132,16 @@ def test_bad_flags(tmp_path):
     seq = write_sequence(tmp_path / "seq")
     code, _, err = run_cli("run", seq, "--out", tmp_path / "o", "--clip-near", "2", "--clip-far", "1")
     assert_clean_error(code, err, "--clip-near")
-    code, _, err = run_cli("run", seq, "--out", tmp_path / "o", "--depth-scale", "0")
-    assert_clean_error(code, err, "--depth-scale")
+    for scale in ("0", "inf"):
+        code, _, err = run_cli("run", seq, "--out", tmp_path / "o", "--depth-scale", scale)
+        assert_clean_error(code, err, "--depth-scale")
+    code, _, err = run_cli("run", seq, "--out", tmp_path / "o", "--clip-far", "inf")
+    assert_clean_error(code, err, "--clip-far")
+    # argparse's own errors are one line too, not after a usage block
+    code, _, err = run_cli("run", seq, "--out", tmp_path / "o", "--max-frames", "0")
+    assert_clean_error(code, err, "--max-frames")
+    code, _, err = run_cli("run", seq, "--out", tmp_path / "o", "--camera", "sideways")
+    assert_clean_error(code, err, "--camera", "sideways")
     code, _, err = run_cli("run", seq, "--out", tmp_path / "o", "--start", "99")
     assert_clean_error(code, err, "no depth frames")
 
@@ -139,8 +151,12 @@ def test_rerun_into_the_same_folder_leaves_only_its_own_frames(tmp_path):
     out = tmp_path / "out"
     assert run_cli("run", seq, "--out", out, "--method", "observe", "--save-every", 1)[0] == 0
     (out / "live" / "notes.txt").write_text("mine")
+    assert run_cli("mesh", out, "--frame", 4)[0] == 0 and run_cli("view", out)[0] == 0
+    assert (out / "mesh" / "frame-000004.ply").is_file() and (out / "view.html").is_file()
     assert run_cli("run", seq, "--out", out, "--method", "observe", "--max-frames", 3)[0] == 0
     assert sorted(p.name for p in (out / "live").iterdir()) == ["frame-000000.ply", "frame-000002.ply", "notes.txt"]
+    # what `mesh` and `view` made of the earlier run went with it
+    assert not (out / "mesh" / "frame-000004.ply").exists() and not (out / "view.html").exists()
     metrics = json.loads((out / "metrics.json").read_text())
     assert [f["frame"] for f in metrics["frames"]] == [0, 1, 2]
 

@@ -329,10 +329,11 @@ def test_fuzz_every_case_is_exit_0_or_one_line(tmp_path, capfd):
             with warnings.catch_warnings():     # a warning would be a second line on stderr
                 warnings.simplefilter("error")
                 code = main([str(a) for a in args] + ["--no-progress"])
-        except SystemExit as exc:        # argparse's own usage errors: exit 2, usage and one error line
-            code = exc.code
-            assert code == 2 and capfd.readouterr().err.count("error:") == 1, (case, args)
-        err = capfd.readouterr().err
+        except SystemExit as exc:        # argparse's own usage errors: exit 2 and one line
+            code, err = exc.code, capfd.readouterr().err
+            assert code == 2 and len(err.strip().splitlines()) == 1 and "error:" in err, (case, args, err)
+        else:
+            err = capfd.readouterr().err
         assert code in (0, 2), (case, args, err)
         if code == 2 and err:
             assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, (case, args, err)

@@ -8,6 +8,7 @@ first frame is processed (`claim`), so a run that fails before that leaves the e
 from __future__ import annotations
 
 import json
+import math
 import os
 import resource
 from dataclasses import asdict, dataclass, fields
@@ -81,9 +82,10 @@ class RunOutputs:
     def save_live(self, frame: int, vertices: np.ndarray, faces: np.ndarray | None = None) -> None:
         write_ply(self.live_path(frame), vertices, faces)
 
-    # An earlier run's outputs in OUT (other files there are the user's and stay).
+    # An earlier run's outputs in OUT, with what `eval`, `mesh` and `view` made of them (other
+    # files there are the user's and stay).
     EARLIER = ("live/frame-*.ply", "render/frame-*.png", "model.ply", "model_mesh.ply", "metrics.json",
-               "eval.json", "surfels.png", "live.mp4", "checkpoint.pkl")
+               "eval.json", "surfels.png", "live.mp4", "checkpoint.pkl", "mesh/frame-*.ply", "view.html")
 
     def claim(self) -> None:
         """Remove an earlier run's outputs from OUT, so that it holds this run's alone."""
@@ -160,5 +162,17 @@ class RunOutputs:
         if self.error:
             doc["error"] = self.error
         path = self.out_dir / "metrics.json"
-        write_atomic(path, (json.dumps(doc, indent=1) + "\n").encode())
+        write_atomic(path, (json.dumps(finite_or_null(doc), indent=1, allow_nan=False) + "\n").encode())
         return path
+
+
+def finite_or_null(value):
+    """`value` with every non-finite float (a rigid ICP that found no pairs: NaN) made None, so
+    that metrics.json is strict JSON (null), which every parser reads."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_null(v) for v in value]
+    return value

@@ -14,7 +14,7 @@ import re
 import struct
 import sys
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator
 
@@ -161,34 +161,43 @@ def color_header(path: Path) -> tuple[int, int]:
 
 
 def plan_color(layout: Layout, files: list[FrameFiles], depth_size: tuple[int, int],
-               root: Path) -> tuple[tuple[int, int] | None, tuple[str, ...]]:
-    """The colour frames' (width, height) if colour is used (None: it is not), and the notes the
-    run prints about it. Every used colour frame's header is checked, like the depth's."""
+               root: Path) -> tuple[tuple[int, int] | None, list[FrameFiles], tuple[str, ...]]:
+    """The first used colour frame's (width, height) (None: colour is not used), the frames
+    without the colour frames that cannot be used, and the notes the run prints about it (once
+    each). Every colour frame's header is checked, like the depth's. A colour frame of another
+    size than the depth is used resized where its aspect ratio is the depth's; where it is not,
+    its frame runs without colour."""
     have = [f for f in files if f.color is not None]
     if not have:
-        return None, ()
+        return None, files, ()
     if not layout.color_registered:
-        return None, (f"{layout.name} colour frames are not registered to the depth image: colour is not used",)
-    size = color_header(have[0].color)
-    (w, h), (W, H) = size, depth_size
+        return None, files, (f"{layout.name} colour frames are not registered to the depth image: colour is not used",)
+    W, H = depth_size
+    sizes = {f.index: color_header(f.color) for f in have}
+    # Scaled to the depth's height, the colour's width must be within half a pixel of the
+    # depth's: else no resize lines the two up everywhere.
+    fits = {index: abs(w * H / h - W) <= 0.5 for index, (w, h) in sizes.items()}
+    used = [f for f in have if fits[f.index]]
+    if not used:
+        w, h = sizes[have[0].index]
+        return None, files, (f"colour frames are {w}x{h} and depth {W}x{H}, another aspect ratio: colour is not used",)
     notes = []
-    if size != depth_size:
-        # Scaled to the depth's height, the colour's width must be within half a pixel of the
-        # depth's: else no resize lines the two up everywhere.
-        if abs(w * H / h - W) > 0.5:
-            return None, (f"colour frames are {w}x{h} and depth {W}x{H}, another aspect ratio: colour is not used",)
-        notes.append(f"colour frames are {w}x{h} and depth {W}x{H}: colour is resized to the depth size")
-    for f in have[1:]:
-        other = color_header(f.color)
-        if other != size:
-            raise InputError(f.color, f"colour frame is {other[0]}x{other[1]}, but the first colour frame "
-                                      f"is {w}x{h}")
-    missing = [f for f in files if f.color is None]
+    resized = sorted({sizes[f.index] for f in used} - {depth_size})
+    if resized:
+        listed = ", ".join(f"{w}x{h}" for w, h in resized)
+        notes.append(f"colour frames are {listed} and depth {W}x{H}: colour is resized to the depth size")
+    unfit = [f for f in have if not fits[f.index]]
+    if unfit:
+        w, h = sizes[unfit[0].index]
+        notes.append(f"{len(unfit)} colour frame(s) of another aspect ratio than the depth's {W}x{H} (first: "
+                     f"{unfit[0].color}, {w}x{h}): their frames run without colour")
+        files = [f if f.color is None or fits[f.index] else replace(f, color=None) for f in files]
+    missing = [f for f in files if f.index not in sizes]
     if missing:
         first = root / layout.sibling["color"].format(missing[0].index)
         notes.append(f"{len(missing)} of {len(files)} frames have no colour frame (first: {first}); "
                      "they run without colour")
-    return size, tuple(notes)
+    return sizes[used[0].index], files, tuple(notes)
 
 
 class Sequence:
@@ -238,11 +247,12 @@ class Sequence:
         if raw.dtype != np.uint8 or raw.ndim != 3 or raw.shape[2] not in (3, 4):
             raise InputError(frame.color, f"colour frame must be 8-bit with 3 channels, decoded as "
                                           f"{raw.dtype} {raw.shape}")
-        w, h = self.color_size
-        if raw.shape[:2] != (h, w):
-            raise InputError(frame.color, f"colour frame is {raw.shape[1]}x{raw.shape[0]}, expected {w}x{h}")
-        rgb = cv2.cvtColor(raw, cv2.COLOR_BGRA2RGB if raw.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+        h, w = raw.shape[:2]
         size = (self.intrinsics.width, self.intrinsics.height)
+        if abs(w * size[1] / h - size[0]) > 0.5:    # its header said otherwise when the sequence was opened
+            raise InputError(frame.color, f"colour frame is {w}x{h}, another aspect ratio than the depth's "
+                                          f"{size[0]}x{size[1]}")
+        rgb = cv2.cvtColor(raw, cv2.COLOR_BGRA2RGB if raw.shape[2] == 4 else cv2.COLOR_BGR2RGB)
         return rgb if (w, h) == size else cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
 
     def read_pose(self, frame: FrameFiles) -> np.ndarray | None:
@@ -316,8 +326,8 @@ def open_sequence(path: str | Path, *, intrinsics: Intrinsics | None = None, dep
     root = Path(path)
     if not root.is_dir():
         raise InputError(root, "input sequence folder does not exist" if not root.exists() else "input is not a folder")
-    if not depth_scale > 0:
-        raise InputError(None, f"--depth-scale must be positive, got {depth_scale}")
+    if not 0 < depth_scale < np.inf:
+        raise InputError(None, f"--depth-scale must be positive and finite, got {depth_scale}")
     layout, frames, intrinsics_path = detect_layout(root, intrinsics is not None)
     given = intrinsics is not None
     if not given:
@@ -337,5 +347,5 @@ def open_sequence(path: str | Path, *, intrinsics: Intrinsics | None = None, dep
             extra[kind] = candidate if candidate.exists() else None
         files.append(FrameFiles(index, depth_path, **extra))
     check_principal_point(intrinsics, None if given else intrinsics_path, *size)
-    color_size, notes = plan_color(layout, files, size, root)
+    color_size, files, notes = plan_color(layout, files, size, root)
     return Sequence(root, layout.name, intrinsics.with_size(*size), files, depth_scale, color_size, notes)

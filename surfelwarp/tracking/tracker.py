@@ -119,7 +119,7 @@ def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None
 class TrackingCounts:
     """What the tracker did in one frame, as metrics.json lists it (None: not applicable)."""
     correspondences: int                      # depth pairs of the non-rigid solve, at its result
-    data_rmse_mm: float
+    data_rmse_m: float
     rigid_rmse_m: float
     rigid_iterations: int
     rigid_degenerate_directions: int          # directions rigid ICP did not move the camera along
@@ -320,7 +320,7 @@ class Tracker:
         """The frame's counts, after `factor`."""
         alignment = nonrigid.alignment
         return TrackingCounts(
-            nonrigid.correspondences, 1000 * nonrigid.data_rmse_m, float(rigid.rmse_m), rigid.iterations,
+            nonrigid.correspondences, float(nonrigid.data_rmse_m), float(rigid.rmse_m), rigid.iterations,
             rigid.degenerate_directions, nonrigid.silhouette_points,
             int(self.anchors.released.sum()) if self.anchors is not None else None,
             round(alignment.unsupported_fraction, 5) if alignment is not None else None,

@@ -78,6 +78,24 @@ def test_colour_of_another_aspect_ratio_is_not_used(tmp_path, capsys):
     assert run_observe(root, tmp_path / "out", capsys).count("aspect ratio") == 1
 
 
+def test_colour_frames_of_other_sizes_are_used_where_they_map(tmp_path, capsys):
+    """CONTRACT.md: a colour frame of another size than the depth is used where it maps (the
+    depth's aspect ratio: resized), its frame runs without colour where it does not; said once."""
+    root = write_sequence(tmp_path / "s", frames=range(4), color=pattern)
+    half = cv2.resize(pattern(1), (32, 24), interpolation=cv2.INTER_AREA)
+    cv2.imwrite(str(root / "frame-000001.color.png"), half[..., ::-1])
+    cv2.imwrite(str(root / "frame-000002.color.png"), np.zeros((24, 24, 3), np.uint8))
+    seq = open_sequence(root)
+    assert seq.has_color and seq.color_size == (64, 48) and len(seq.notes) == 2
+    assert "32x24" in seq.notes[0] and "resized" in seq.notes[0]
+    assert "1 colour frame(s)" in seq.notes[1] and "frame-000002.color.png" in seq.notes[1]
+    colours = [seq.read_color(f) for f in seq.files]
+    assert [c is None for c in colours] == [False, False, True, False]
+    assert colours[1].shape == (48, 64, 3) and np.abs(colours[1].astype(int) - pattern(1)).mean() < 40
+    err = run_observe(root, tmp_path / "out", capsys)
+    assert err.count("resized") == 1 and err.count("aspect ratio") == 1, err
+
+
 def test_frames_without_colour_run_without_it(tmp_path, capsys):
     root = write_sequence(tmp_path / "s", frames=range(5), color=pattern)
     for i in (2, 4):
@@ -105,7 +123,7 @@ def test_alpha_is_dropped(tmp_path):
     assert seq.has_color and np.array_equal(seq.read_color(seq.files[1]), pattern(1))
 
 
-@pytest.mark.parametrize("bad", ["16bit", "grey", "not_png", "size"])
+@pytest.mark.parametrize("bad", ["16bit", "grey", "not_png"])
 def test_bad_colour_frames_are_named_when_opening(tmp_path, bad):
     root = write_sequence(tmp_path / "s", frames=range(3), color=pattern)
     path = root / "frame-000001.color.png"
@@ -113,14 +131,12 @@ def test_bad_colour_frames_are_named_when_opening(tmp_path, bad):
         cv2.imwrite(str(path), np.zeros((48, 64, 3), np.uint16))
     elif bad == "grey":
         cv2.imwrite(str(path), np.zeros((48, 64), np.uint8))
-    elif bad == "not_png":
-        path.write_text("hello")
     else:
-        cv2.imwrite(str(path), np.zeros((24, 32, 3), np.uint8))
+        path.write_text("hello")
     with pytest.raises(InputError) as err:
         open_sequence(root)
     expected = {"16bit": "8-bit RGB or RGBA, found 16-bit RGB", "grey": "found 8-bit grayscale",
-                "not_png": "not a PNG", "size": "32x24, but the first colour frame is 64x48"}[bad]
+                "not_png": "not a PNG"}[bad]
     assert err.value.path == path and expected in err.value.problem
 
 
