@@ -97,7 +97,10 @@ def run_task(name: str, input_path: str, out: str, prepare: Callable[[str, str],
             result = TaskResult(name, input_path, "skipped", summary["frames"], summary["median_frame_seconds"],
                                 "outputs complete", summary.get("peak_rss_mb", 0.0))
         else:
-            resume = (Path(out) / NAME).is_file()
+            # A finished run lacking only the renders keeps its checkpoint at its end: resumed,
+            # it would draw nothing, so it runs again.
+            finished = _complete(Path(out), identity, len(seq), render=False) is not None
+            resume = (Path(out) / NAME).is_file() and not finished
             try:
                 outputs = run_sequence(**setup, resume=resume)
             except InputError as exc:

@@ -14,8 +14,8 @@ InputError naming the file and the key. Every number (and every entry of a list 
 must be finite and positive; a params class names in class attributes the exceptions and
 bounds: `ZERO_OK` (0 is meaningful: a weight that turns a term off, a tolerance), `UNIT` (at
 most 1: cosines, shares, fractions), `AT_MOST` (name -> largest sensible value: pixel windows,
-counts that size an allocation; a length, a name ending in `_m`, is at most LENGTH_AT_MOST_M
-unless named there), and `CHOICES` (the values a string field may take); a
+counts that size an allocation, None: no bound; a length, a name ending in `_m`, is at most
+LENGTH_AT_MOST_M unless named there), and `CHOICES` (the values a string field may take); a
 `problems()` method adds constraints between values (key -> whether it is out of range, or
 what is wrong with it).
 """

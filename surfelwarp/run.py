@@ -122,15 +122,16 @@ def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: in
             record.rss_mb = round(rss_mb(), 1)
             outputs.add_frame(record)
             if _saves(i, len(seq), save_every) or len(outputs.frames) == 1:
+                # `total` is the whole frame's wall time (CONTRACT.md), its outputs included: the
+                # live PLY (`write`) and its picture (`render`). Not the checkpoint and metrics.json
+                # after them, the run's bookkeeping: the checkpoint holds the frame's record.
+                t4 = time.perf_counter()
                 _save_frame(outputs, method, seq, files.index, depth, color, record, render)
+                t5 = time.perf_counter()
+                record.seconds["write"] = t5 - t4 - record.seconds.get("render", 0.0)
+                record.seconds["total"] += t5 - t4
                 checkpoint.save(out_dir, checkpoint.Checkpoint(identity, i + 1, method, outputs.frames,
                                                                outputs.skipped))
-                # `total` is the whole frame's wall time (CONTRACT.md), writing included: the live
-                # PLY and the checkpoint as `write`, beside `render` (the checkpoint keeps the
-                # total before its own writing; metrics.json's writing is after this).
-                t4 = time.perf_counter()
-                record.seconds["write"] = t4 - t3 - record.seconds.get("render", 0.0)
-                record.seconds["total"] = t4 - t0
                 outputs.write_metrics()
             bar.update(1)
             bar.set_postfix_str(f"surfels={record.surfels}", refresh=False)

@@ -48,12 +48,13 @@ def test_two_done_one_failed_then_two_skipped(tmp_path):
     # other parameters are another run: not skipped
     code, _ = run_here("batch", inputs[0], "--out", out, "--workers", 1, "--save-every", 3)
     assert code == 0 and rows(out)["a"]["status"] == "done"
-    # outputs without the renders (a --no-render run's) are not complete for a batch that wants them
-    (out / "a" / "live.mp4").unlink()
-    code, _ = run_here("batch", inputs[0], "--out", out, "--workers", 1, "--save-every", 3, "--no-render")
-    assert code == 0 and rows(out)["a"]["status"] == "skipped"
-    code, _ = run_here("batch", inputs[0], "--out", out, "--workers", 1, "--save-every", 3)
-    assert code == 0 and rows(out)["a"]["status"] == "done" and (out / "a" / "live.mp4").is_file()
+    # a --no-render run is complete for a batch without renders, not for one that wants them:
+    # that one runs it again (not resumed from the checkpoint at its end, which would draw nothing)
+    other = tmp_path / "other"
+    for flags, status in ((["--no-render"], "done"), (["--no-render"], "skipped"), ([], "done")):
+        code, _ = run_here("batch", inputs[1], "--out", other, "--workers", 1, *flags)
+        assert code == 0 and rows(other)["b"]["status"] == status and rows(other)["b"]["message"] != "resumed"
+    assert (other / "b" / "live.mp4").is_file() and len(list((other / "b" / "render").glob("frame-*.png"))) == 2
 
 
 def test_a_killed_worker_runs_its_sequence_again(tmp_path):

@@ -142,21 +142,25 @@ def _check_depth_header(path: Path, size: tuple[int, int] | None) -> tuple[int, 
 
 
 def color_header(path: Path) -> tuple[int, int]:
-    """(width, height) of a colour frame from its header, which must say 8-bit, 3 or 4 channels."""
+    """(width, height) of a colour frame from its header, which must say 8-bit, 3 or 4 channels
+    and a size that is not empty."""
     if path.suffix.lower() == ".png":
         width, height, bit_depth, colour_type = png_header(path)
         if bit_depth != 8 or colour_type not in (2, 6):
             kind = _PNG_KINDS.get(colour_type, "unknown")
             raise InputError(path, f"colour PNG must be 8-bit RGB or RGBA, found {bit_depth}-bit {kind}")
-        return width, height
-    from PIL import Image   # opening reads the header only; the pixels stay undecoded
-    try:
-        with Image.open(path) as image:
-            mode, size = image.mode, image.size
-    except (OSError, ValueError, SyntaxError) as exc:
-        raise InputError(path, f"cannot read colour frame ({exc.__class__.__name__})") from None
-    if mode != "RGB":
-        raise InputError(path, f"colour frame must be 8-bit with 3 channels, found mode {mode}")
+        size = width, height
+    else:
+        from PIL import Image   # opening reads the header only; the pixels stay undecoded
+        try:
+            with Image.open(path) as image:
+                mode, size = image.mode, image.size
+        except (OSError, ValueError, SyntaxError) as exc:
+            raise InputError(path, f"cannot read colour frame ({exc.__class__.__name__})") from None
+        if mode != "RGB":
+            raise InputError(path, f"colour frame must be 8-bit with 3 channels, found mode {mode}")
+    if min(size) <= 0:
+        raise InputError(path, f"colour frame is {size[0]}x{size[1]}: empty")
     return size
 
 

@@ -6,9 +6,9 @@ per-stage medians (frames after the first, which only initialises), ms per 100k 
 every stage at three model sizes (the frames in thirds by surfel count), bytes per surfel of the
 whole surfel model (surfel arrays and warp field), the colour stage's share of a frame (where
 colour features were matched), and the ratios DynamicFusion / SurfelWarp per frame and in the
-model update (every stage after the shared tracker). With --open3d, Open3D's dense SLAM
-(open3d.t.pipelines.slam on the CPU, depth only) tracks and fuses the same frames as a reference
-for what a compiled CPU pipeline does per frame.
+model update (every stage after the shared tracker but a saved frame's outputs). With
+--open3d, Open3D's dense SLAM (open3d.t.pipelines.slam on the CPU, depth only) tracks and fuses
+the same frames as a reference for what a compiled CPU pipeline does per frame.
 
 The machine is shared and noisy: compare ratios measured in one run, not times across runs.
 """

@@ -56,12 +56,15 @@ INPUT_STAGES = ("read", "preprocess")
 # Tracking: the shared rigid ICP, colour correspondences and Gauss-Newton, and each method's
 # model maps and data points.
 TRACKER_STAGES = ("solver_maps", "rigid", "predict", "features", "nonrigid")
+# A saved frame's outputs (its live PLY and picture), inside its total but no model update.
+OUTPUT_STAGES = ("write", "render")
 
 
 def speed(metrics: dict[str, dict]) -> dict:
     """Median milliseconds per frame (frames after the first, which only initialises) of each
-    method: total, input, shared tracker and model update (every other stage), and, given both
-    methods, the ratios DynamicFusion / SurfelWarp of the median totals and model updates."""
+    method: total, input, shared tracker and model update (every other stage but a saved
+    frame's outputs), and, given both methods, the ratios DynamicFusion / SurfelWarp of the
+    median totals and model updates."""
     out = {}
     for name in (n for n in METHODS if n in metrics):
         frames = metrics[name]["frames"][1:] or metrics[name]["frames"]
@@ -69,7 +72,8 @@ def speed(metrics: dict[str, dict]) -> dict:
         rows = {"total": [f["seconds"]["total"] for f in frames],
                 "input": [group(f, INPUT_STAGES) for f in frames],
                 "tracker": [group(f, TRACKER_STAGES) for f in frames],
-                "model": [f["seconds"]["total"] - group(f, INPUT_STAGES + TRACKER_STAGES) for f in frames]}
+                "model": [f["seconds"]["total"] - group(f, INPUT_STAGES + TRACKER_STAGES + OUTPUT_STAGES)
+                          for f in frames]}
         out[name] = {k: 1000 * float(np.median(v)) for k, v in rows.items()}
     if len(out) < len(METHODS):
         return out

@@ -123,7 +123,7 @@ def test_alpha_is_dropped(tmp_path):
     assert seq.has_color and np.array_equal(seq.read_color(seq.files[1]), pattern(1))
 
 
-@pytest.mark.parametrize("bad", ["16bit", "grey", "not_png"])
+@pytest.mark.parametrize("bad", ["16bit", "grey", "not_png", "empty"])
 def test_bad_colour_frames_are_named_when_opening(tmp_path, bad):
     root = write_sequence(tmp_path / "s", frames=range(3), color=pattern)
     path = root / "frame-000001.color.png"
@@ -131,12 +131,16 @@ def test_bad_colour_frames_are_named_when_opening(tmp_path, bad):
         cv2.imwrite(str(path), np.zeros((48, 64, 3), np.uint16))
     elif bad == "grey":
         cv2.imwrite(str(path), np.zeros((48, 64), np.uint8))
-    else:
+    elif bad == "not_png":
         path.write_text("hello")
+    else:       # a header that says 64x0 (no decoder is asked)
+        data = bytearray(path.read_bytes())
+        data[20:24] = (0).to_bytes(4, "big")
+        path.write_bytes(bytes(data))
     with pytest.raises(InputError) as err:
         open_sequence(root)
     expected = {"16bit": "8-bit RGB or RGBA, found 16-bit RGB", "grey": "found 8-bit grayscale",
-                "not_png": "not a PNG"}[bad]
+                "not_png": "not a PNG", "empty": "64x0: empty"}[bad]
     assert err.value.path == path and expected in err.value.problem
 
 

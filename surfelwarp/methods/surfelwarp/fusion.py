@@ -49,7 +49,7 @@ class FusionParams:
     redundant_normal_threshold: float = 0.95
     redundant_neighbourhood_px: int = 1     # fine pixels each way (1 -> 3x3)
     # Live surfels the camera saw through (tracking/free_space.py, with the tracker's
-    # silhouette parameters) by more than this are removed (inf: none). Nearer ones are left to
+    # silhouette parameters) by more than this are removed (inf or 1e9: none). Nearer ones are left to
     # the tracker's free-space term, which pulls them back: carved, a sheet's overhanging edge
     # would no longer hold the model in place (free sheet: EPE 95 mm carving at 0, 22 mm at 1 cm).
     carve_beyond_m: float = 0.01
@@ -69,7 +69,8 @@ class FusionParams:
     ZERO_OK = {"axial_noise", "normal_threshold", "stable_confidence", "unstable_frames", "redundant_distance_ratio",
                "redundant_normal_threshold", "redundant_neighbourhood_px", "carve_beyond_m", "coverage_px"}
     UNIT = {"normal_threshold", "redundant_normal_threshold"}
-    AT_MOST = {"window": 16, "redundant_neighbourhood_px": 16, "coverage_px": 16}
+    # carve_beyond_m has no bound: a config file cannot say inf, so a huge value is its "off".
+    AT_MOST = {"window": 16, "redundant_neighbourhood_px": 16, "coverage_px": 16, "carve_beyond_m": None}
 
 
 class Correspondences(NamedTuple):
