@@ -59,17 +59,15 @@ def unique_names(inputs: list[Path]) -> list[str]:
     return names
 
 
-def _complete(out: Path, identity: dict, frames: int, render: bool = True) -> dict | None:
-    """metrics.json of a finished run of the same input and parameters in `out`, with the
-    renders if `render` (a run with --no-render is not complete for a batch that wants them),
-    else None."""
+def _complete(out: Path, identity: dict, frames: int) -> dict | None:
+    """metrics.json of a finished run of the same input and parameters in `out`, else None."""
     from surfelwarp.io.checkpoint import run_identity
     try:
         metrics = json.loads((out / "metrics.json").read_text())
     except (OSError, ValueError):
         return None
     # model_mesh.ply is written after model.ply and before the last metrics.json
-    if not (out / "model_mesh.ply").is_file() or "error" in metrics or (render and not (out / "live.mp4").is_file()):
+    if not (out / "model_mesh.ply").is_file() or "error" in metrics:
         return None
     done = run_identity(metrics.get("method"), Path(metrics.get("input", "")), metrics.get("config", {}))
     summary = metrics.get("summary", {})
@@ -91,16 +89,17 @@ def run_task(name: str, input_path: str, out: str, prepare: Callable[[str, str],
         seq, method = setup["seq"], setup["method"]
         config = run_config(method, setup["save_every"], setup["preprocess_params"], setup["input_config"])
         identity = run_identity(method.name, seq.root, config)
-        done = _complete(Path(out), identity, len(seq), setup["render"])
-        if done is not None:
+        done = _complete(Path(out), identity, len(seq))
+        # A --no-render run is not complete for a batch that wants the renders.
+        rendered = not setup["render"] or (Path(out) / "live.mp4").is_file()
+        if done is not None and rendered:
             summary = done["summary"]
             result = TaskResult(name, input_path, "skipped", summary["frames"], summary["median_frame_seconds"],
                                 "outputs complete", summary.get("peak_rss_mb", 0.0))
         else:
             # A finished run lacking only the renders keeps its checkpoint at its end: resumed,
             # it would draw nothing, so it runs again.
-            finished = _complete(Path(out), identity, len(seq), render=False) is not None
-            resume = (Path(out) / NAME).is_file() and not finished
+            resume = (Path(out) / NAME).is_file() and done is None
             try:
                 outputs = run_sequence(**setup, resume=resume)
             except InputError as exc:

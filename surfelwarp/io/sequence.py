@@ -178,9 +178,7 @@ def plan_color(layout: Layout, files: list[FrameFiles], depth_size: tuple[int, i
         return None, files, (f"{layout.name} colour frames are not registered to the depth image: colour is not used",)
     W, H = depth_size
     sizes = {f.index: color_header(f.color) for f in have}
-    # Scaled to the depth's height, the colour's width must be within half a pixel of the
-    # depth's: else no resize lines the two up everywhere.
-    fits = {index: abs(w * H / h - W) <= 0.5 for index, (w, h) in sizes.items()}
+    fits = {index: _maps_onto(size, depth_size) for index, size in sizes.items()}
     used = [f for f in have if fits[f.index]]
     if not used:
         w, h = sizes[have[0].index]
@@ -202,6 +200,14 @@ def plan_color(layout: Layout, files: list[FrameFiles], depth_size: tuple[int, i
         notes.append(f"{len(missing)} of {len(files)} frames have no colour frame (first: {first}); "
                      "they run without colour")
     return sizes[used[0].index], files, tuple(notes)
+
+
+def _maps_onto(color_size: tuple[int, int], depth_size: tuple[int, int]) -> bool:
+    """Whether a colour image of this (width, height) resizes onto the depth image: scaled to
+    the depth's height, its width must be within half a pixel of the depth's, else no resize
+    lines the two up everywhere."""
+    (w, h), (W, H) = color_size, depth_size
+    return abs(w * H / h - W) <= 0.5
 
 
 class Sequence:
@@ -253,7 +259,7 @@ class Sequence:
                                           f"{raw.dtype} {raw.shape}")
         h, w = raw.shape[:2]
         size = (self.intrinsics.width, self.intrinsics.height)
-        if abs(w * size[1] / h - size[0]) > 0.5:    # its header said otherwise when the sequence was opened
+        if not _maps_onto((w, h), size):    # its header said otherwise when the sequence was opened
             raise InputError(frame.color, f"colour frame is {w}x{h}, another aspect ratio than the depth's "
                                           f"{size[0]}x{size[1]}")
         rgb = cv2.cvtColor(raw, cv2.COLOR_BGRA2RGB if raw.shape[2] == 4 else cv2.COLOR_BGR2RGB)

@@ -110,8 +110,7 @@ def find_correspondences(maps: FusionMaps, obs: CameraObservation, live_confiden
     rows, cols = np.divmod(pix, obs.valid.shape[1])
     best_k = np.empty(len(rows), np.int64)
     best_d2 = np.empty(len(rows), np.float32)
-    # Row gathers by np.take on flat pixel indices: several times faster than fancy indexing.
-    vertex, normal = (np.take(a.reshape(-1, 3), pix, axis=0) for a in (obs.vertex_map, obs.normal_map))
+    vertex, normal = _depth_at(obs, pix)
     best_in_windows(maps.index, _window_origin(rows, s, w), _window_origin(cols, s, w), w,
                     np.ascontiguousarray(maps.points, np.float32), np.ascontiguousarray(maps.normals, np.float32),
                     vertex, normal, distance_gate_m(np.take(obs.depth_m, pix), params) ** 2,
@@ -158,10 +157,14 @@ def _depth_in_world(obs: CameraObservation, rows: np.ndarray, cols: np.ndarray, 
     T = np.asarray(T_camera_to_world, np.float64)
     R, t = T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
     pix = rows * obs.valid.shape[1] + cols
-    # Row gathers by np.take on flat pixel indices: several times faster than fancy indexing.
-    depth_v = np.take(obs.vertex_map.reshape(-1, 3), pix, axis=0) @ R.T + t
-    depth_n = np.take(obs.normal_map.reshape(-1, 3), pix, axis=0) @ R.T
-    return pix, depth_v, depth_n
+    vertex, normal = _depth_at(obs, pix)
+    return pix, vertex @ R.T + t, normal @ R.T
+
+
+def _depth_at(obs: CameraObservation, pix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The depth vertices and normals (n, 3), camera frame, at flat pixel indices: row gathers
+    by np.take, several times faster than fancy indexing."""
+    return np.take(obs.vertex_map.reshape(-1, 3), pix, axis=0), np.take(obs.normal_map.reshape(-1, 3), pix, axis=0)
 
 
 def fuse_reference(model: SurfelModel, T_camera_to_world: np.ndarray, obs: CameraObservation,
