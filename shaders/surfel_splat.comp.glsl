@@ -5,6 +5,8 @@
 // Pass 0 keeps each pixel's nearest depth key, pass 1 the lowest index at that key. Keys are
 // inverted (atomicMax) so the all-zero clear means empty; the fill surfels' keys carry a
 // lower top bit, so they only take pixels no surfel of the first set reached.
+// Pass 0 also keeps each surfel's box of the pixels it can win (those whose key was at most its
+// own when it wrote it: keys only grow), and pass 1 tries only those pixels.
 layout(local_size_x = 64) in;
 layout(std430, binding = 0) readonly buffer Positions { float pos[]; };    // camera frame, xyz
 layout(std430, binding = 4) readonly buffer Normals { float nrm[]; };
@@ -12,6 +14,7 @@ layout(std430, binding = 5) readonly buffer Radii { float radius[]; };      // m
 layout(std430, binding = 1) buffer Depth { uint depth_key[]; };
 layout(std430, binding = 2) buffer Index { uint index_key[]; };
 layout(std430, binding = 3) readonly buffer Elements { uint element[]; };   // surfels drawn, in order
+layout(std430, binding = 6) buffer Boxes { uint win_box[]; };   // per element: first, last pixel (u | v << 16)
 
 uniform vec4 u_K;          // fx, fy, cx, cy, OpenCV convention
 uniform ivec2 u_size;      // image width, height
@@ -57,6 +60,12 @@ void main() {
     ivec2 last = ivec2(clamp(ceil(centre + half_size) - 1.0, vec2(-1.0), vec2(u_size - 1)));
     float ez = r * sqrt(max(1.0 - n.z * n.z, 0.0));
     uint layer = e < u_first_count ? 0x80000000u : 0u;
+    if (u_pass == 1) {      // the same tests as in pass 0 led here
+        uint a = win_box[2u * e], b = win_box[2u * e + 1u];
+        first = max(first, ivec2(a & 0xFFFFu, a >> 16));
+        last = min(last, ivec2(b & 0xFFFFu, b >> 16));
+    }
+    ivec2 win_first = ivec2(0x7FFF), win_last = ivec2(-1);
     for (int v = first.y; v <= last.y; ++v) {
         for (int u = first.x; u <= last.x; ++u) {
             vec3 d = vec3((vec2(u, v) - u_K.zw) / u_K.xy, 1.0);    // ray through the pixel centre
@@ -71,8 +80,16 @@ void main() {
             float z = clamp(t, p.z - ez, p.z + ez);
             uint key = layer | (~floatBitsToUint(z) >> 1);
             uint k = uint(v) * uint(u_size.x) + uint(u);
-            if (u_pass == 0) atomicMax(depth_key[k], key);
-            else if (depth_key[k] == key) atomicMax(index_key[k], ~i);
+            if (u_pass == 1) {
+                if (depth_key[k] == key) atomicMax(index_key[k], ~i);
+            } else if (atomicMax(depth_key[k], key) <= key) {
+                win_first = min(win_first, ivec2(u, v));
+                win_last = max(win_last, ivec2(u, v));
+            }
         }
+    }
+    if (u_pass == 0) {      // an empty box (first > last) where it can win nothing
+        win_box[2u * e] = uint(win_first.x) | (uint(win_first.y) << 16);
+        win_box[2u * e + 1u] = uint(max(win_last.x, 0)) | (uint(max(win_last.y, 0)) << 16);
     }
 }

@@ -20,12 +20,14 @@ MAX_GROUPS_X = 65535    # GL's guaranteed work-group count per dimension: more g
 
 
 class Scatter:
-    """One compute program, its input buffers (bound to bindings 0, 3, ...) and the key and
-    index buffers (bindings 1 and 2) of a map of any size."""
+    """One compute program, its input buffers (bound to bindings 0, 3, ...), the key and
+    index buffers (bindings 1 and 2) of a map of any size, and the bindings of any buffers of a
+    uints per invocation the passes share (`scratch`: binding -> uints)."""
 
-    def __init__(self, ctx: moderngl.Context, shader: str, inputs: dict[str, int]):
+    def __init__(self, ctx: moderngl.Context, shader: str, inputs: dict[str, int], scratch: dict[int, int] | None = None):
         self.ctx, self.program = ctx, load_compute(ctx, shader)
         self.inputs = {name: (GrowingBuffer(ctx), binding) for name, binding in inputs.items()}
+        self.scratch = {binding: (GrowingBuffer(ctx), uints) for binding, uints in (scratch or {}).items()}
         self.keys, self.index = GrowingBuffer(ctx), GrowingBuffer(ctx)
         self._written: tuple[int, int, int] = (-1, 0, 0)    # generation, bytes from, to of the last map
 
@@ -38,6 +40,8 @@ class Scatter:
         for name, data in arrays.items():
             buffer, binding = self.inputs[name]
             buffer.upload(data).bind_to_storage_buffer(binding)
+        for binding, (buffer, uints) in self.scratch.items():
+            buffer.reserve(4 * uints * count).bind_to_storage_buffer(binding)
         nbytes = 4 * height * width
         first, end = (0, height) if rows is None else (max(int(rows[0]), 0), min(int(rows[1]), height))
         end = max(end, first)
@@ -71,10 +75,10 @@ class Scatter:
     _instances: dict = {}
 
     @classmethod
-    def of(cls, shader: str, inputs: dict[str, int]) -> "Scatter":
+    def of(cls, shader: str, inputs: dict[str, int], scratch: dict[int, int] | None = None) -> "Scatter":
         """The scatter of this shader for the process's GL context (made on first use)."""
         ctx = gl_context()
         key = (shader, id(ctx))
         if key not in cls._instances:
-            cls._instances[key] = cls(ctx, shader, inputs)
+            cls._instances[key] = cls(ctx, shader, inputs, scratch)
         return cls._instances[key]

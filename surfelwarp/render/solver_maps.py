@@ -56,7 +56,8 @@ def render_solver_maps(positions: np.ndarray, normals: np.ndarray, radii: np.nda
     elements = np.arange(n, dtype=np.uint32) if indices is None else _elements(indices, n)
     fill = np.zeros(0, np.uint32) if fill_indices is None else _elements(fill_indices, n)
     intr = intrinsics
-    index = Scatter.of("surfel_splat.comp.glsl", {"positions": 0, "elements": 3, "normals": 4, "radii": 5}).run(
+    index = Scatter.of("surfel_splat.comp.glsl", {"positions": 0, "elements": 3, "normals": 4, "radii": 5},
+                         scratch={6: 2}).run(
         len(elements) + len(fill), intr.height, intr.width,
         {"positions": positions, "normals": normals, "radii": radii, "elements": np.concatenate([elements, fill])},
         u_K=(intr.fx, intr.fy, intr.cx, intr.cy), u_size=(intr.width, intr.height), u_near_far=(near_m, far_m),

@@ -119,6 +119,24 @@ def test_small_disks_match_the_reference():
     assert abs(covered / expected - 1) < 0.002, (covered, expected)
 
 
+def test_equal_depths_go_to_the_lowest_index_whatever_the_order_drawn():
+    """Every disk twice, drawn in reverse order (the higher copy first): each pixel goes to the
+    lower copy, on every pixel the disk wins. The second pass tries only the pixels a surfel
+    could win in the first, so a copy that finds its own key already there must still try them."""
+    rng = np.random.default_rng(12)
+    m = 3000
+    z = rng.uniform(0.6, 1.5, m)
+    u, v = rng.uniform(0, K.width, m), rng.uniform(0, K.height, m)
+    p = np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], 1).astype(np.float32)
+    n = unit(-unit(p) + rng.normal(scale=0.3, size=(m, 3))).astype(np.float32)
+    r = (rng.uniform(0.6, 3.0, m) * z / K.fx).astype(np.float32)
+    once = render_solver_maps(p, n, r, K).index
+    twice = render_solver_maps(np.tile(p, (2, 1)), np.tile(n, (2, 1)), np.tile(r, 2), K,
+                               indices=np.arange(2 * m)[::-1]).index
+    assert (once >= 0).sum() > 20000
+    assert np.array_equal(twice, once)
+
+
 def test_selected_surfels_keep_full_array_indices():
     p, n, r = scene(seed=4)
     chosen = np.flatnonzero(np.arange(len(p)) % 3 != 1)

@@ -416,6 +416,8 @@ def test_block_pattern_is_the_sparsity_of_the_normal_equations(problem):
     a, b = knn[:, pattern.pair_s], knn[:, pattern.pair_t]
     assert np.array_equal(pattern.lo[pattern.slots], np.minimum(a, b))
     assert np.array_equal(pattern.hi[pattern.slots], np.maximum(a, b))
+    assert np.array_equal(pattern.double, (a == b) & (pattern.pair_s < pattern.pair_t))   # a node twice
+    assert pattern.double[:7].any()
     assert np.array_equal(pattern.keys(pattern.hi[:5], pattern.lo[:5] + m), -np.ones(5))   # absent pairs
 
 
