@@ -235,3 +235,22 @@ def test_the_chamfer_distance_in_closed_form_is_cv2s():
     widths = _ball_widths(24)
     assert len(widths) == 49 and widths[24] == 24 and widths[0] == 0
     assert _chamfer(8, widths[24 + 8]) <= 24 < _chamfer(8, widths[24 + 8] + 1)
+
+
+def test_the_term_reuses_its_answer_for_the_same_live_points_only():
+    """A candidate's answer is kept for the next linearisation on the same live arrays; points
+    moved in a new array (as every warp gives) are judged afresh."""
+    from types import SimpleNamespace
+    from surfelwarp.tracking.terms.free_space import FreeSpaceTerm
+    term = FreeSpaceTerm(FreeSpace(square_depth(), INTR, np.eye(4)), P, np.zeros((3, 4)))
+    u = np.array([INTR.cx, INTR.cx + 59 + 11, INTR.cx + 59 + 31, INTR.cx - 20])
+    live = at_pixel(u, np.full(4, INTR.cy))
+    normals = np.tile([[0.0], [0.0], [-1.0]], (1, 4))
+    first = term.seen_through(SimpleNamespace(live=live, live_normals=normals))
+    assert list(first[1]) == [1, 2] and first[0] > 0
+    assert term.seen_through(SimpleNamespace(live=live, live_normals=normals)) is first
+    back = live.copy()
+    back[0] -= 0.12                                 # 36 px left: all inside the square
+    again = term.seen_through(SimpleNamespace(live=back, live_normals=normals))
+    assert list(again[1]) == [] and again[0] == 0
+    assert term.seen_through(SimpleNamespace(live=live.copy(), live_normals=normals))[0] == first[0]

@@ -17,16 +17,23 @@ from surfelwarp.tracking.terms import BaseTerm, Iterate, Problem, register, robu
 class FreeSpaceTerm(BaseTerm):
     def __init__(self, free_space: FreeSpace, params: SilhouetteParams, ref_points: np.ndarray):
         self.free_space, self.params, self.ref_points = free_space, params, ref_points
+        self._last = None       # (live points, live normals, what seen_through gave there)
 
     def seen_through(self, at: Iterate):
         """(energy, points, residuals, gradients (3, S), IRLS weights) at the live points: the
-        points the camera saw through (and facing it) and theirs."""
+        points the camera saw through (and facing it) and theirs. An accepted candidate is the
+        next linearisation point with the same live arrays (re-associated, not warped again), so
+        the last answer is kept for them: ~5.5 -> ~2.3 evaluations a sheet frame."""
+        if self._last is not None and self._last[0] is at.live and self._last[1] is at.live_normals:
+            return self._last[2]
         r, grad = self.free_space.residuals(at.live)
         sel = np.flatnonzero(r > 0)
         sel = sel[self.free_space.facing(at.live[:, sel], at.live_normals[:, sel])]
         cost, w = robust(r[sel], "huber", self.params.huber_m)
         weight = self.params.weight
-        return weight * float(np.sum(cost)), sel, r[sel], grad[:, sel], weight * w
+        out = weight * float(np.sum(cost)), sel, r[sel], grad[:, sel], weight * w
+        self._last = (at.live, at.live_normals, out)
+        return out
 
     def energy(self, at: Iterate) -> float:
         return self.seen_through(at)[0]
