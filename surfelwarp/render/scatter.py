@@ -58,8 +58,12 @@ class Scatter:
         self._written = (self.keys.generation + self.index.generation, 4 * first * width, 4 * end * width)
         for name, value in uniforms.items():
             self.program[name].value = value
-        # Stored as ~index (0: empty): ~0 wraps to -1 in int32.
-        index = np.full(height * width, -1, np.int32)
+        # Stored as ~index (0: empty): ~0 wraps to -1 in int32. Only the rows outside the band
+        # are filled here (the band is read over: a 4x map is 20 MB).
+        index = np.empty(height * width, np.int32)
+        index[:first * width] = -1
+        index[end * width:] = -1
+        band = index[first * width:end * width]
         if count and end > first:
             groups = (count + GROUP - 1) // GROUP
             grid = (min(groups, MAX_GROUPS_X), (groups + MAX_GROUPS_X - 1) // MAX_GROUPS_X)
@@ -67,9 +71,10 @@ class Scatter:
                 self.program["u_pass"].value = p
                 self.program.run(*grid)
                 self.ctx.memory_barrier(moderngl.SHADER_STORAGE_BARRIER_BIT)
-            band = index[first * width:end * width]
             self.index.buffer.read_into(band, size=band.nbytes, offset=4 * first * width)
             np.invert(band, out=band)
+        else:
+            band[:] = -1
         return index.reshape(height, width)
 
     _instances: dict = {}

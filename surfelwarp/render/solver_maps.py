@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
@@ -62,10 +63,25 @@ def render_solver_maps(positions: np.ndarray, normals: np.ndarray, radii: np.nda
         {"positions": positions, "normals": normals, "radii": radii, "elements": np.concatenate([elements, fill])},
         u_K=(intr.fx, intr.fy, intr.cx, intr.cy), u_size=(intr.width, intr.height), u_near_far=(near_m, far_m),
         u_max_size=MAX_SIZE_PX, u_min_cos=MIN_COS, u_count=len(elements) + len(fill), u_first_count=len(elements))
-    # One gather each, empty pixels (-1) taking the zero row put in front.
-    vertex = np.take(np.concatenate([np.zeros((1, 3), np.float32), positions]), index + 1, axis=0)
-    normal = np.take(np.concatenate([np.zeros((1, 3), np.float32), normals]), index + 1, axis=0)
+    vertex, normal = _gather(index, positions, normals)
     return SolverMaps(index=index, vertex=vertex, normal=normal, intrinsics=intrinsics)
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather(index, positions, normals):
+    """(H, W, 3) rows of positions and normals at a map's indices, zeros where it is empty
+    (-1), in one pass: numpy took a copy of each array with a zero row in front and two gathers
+    (~4.4 ms a sheet frame)."""
+    h, w = index.shape
+    vertex, normal = np.zeros((h, w, 3), np.float32), np.zeros((h, w, 3), np.float32)
+    for v in range(h):
+        for u in range(w):
+            i = index[v, u]
+            if i >= 0:
+                for c in range(3):
+                    vertex[v, u, c] = positions[i, c]
+                    normal[v, u, c] = normals[i, c]
+    return vertex, normal
 
 
 def maps_to_world(maps: SolverMaps, T_camera_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
