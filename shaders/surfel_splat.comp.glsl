@@ -15,6 +15,7 @@ layout(std430, binding = 1) buffer Depth { uint depth_key[]; };
 layout(std430, binding = 2) buffer Index { uint index_key[]; };
 layout(std430, binding = 3) readonly buffer Elements { uint element[]; };   // surfels drawn, in order
 layout(std430, binding = 6) buffer Boxes { uint win_box[]; };   // per element: first, last pixel (u | v << 16)
+// (so an image side is at most MAX_SIDE_PX, solver_maps.py)
 
 uniform vec4 u_K;          // fx, fy, cx, cy, OpenCV convention
 uniform ivec2 u_size;      // image width, height

@@ -21,10 +21,11 @@ MAX_GROUPS_X = 65535    # GL's guaranteed work-group count per dimension: more g
 
 class Scatter:
     """One compute program, its input buffers (bound to bindings 0, 3, ...), the key and
-    index buffers (bindings 1 and 2) of a map of any size, and the bindings of any buffers of a
-    uints per invocation the passes share (`scratch`: binding -> uints)."""
+    index buffers (bindings 1 and 2) of a map of any size, and any scratch buffers the two
+    passes share (`scratch`: binding -> uints per invocation)."""
 
-    def __init__(self, ctx: moderngl.Context, shader: str, inputs: dict[str, int], scratch: dict[int, int] | None = None):
+    def __init__(self, ctx: moderngl.Context, shader: str, inputs: dict[str, int],
+                 scratch: dict[int, int] | None = None):
         self.ctx, self.program = ctx, load_compute(ctx, shader)
         self.inputs = {name: (GrowingBuffer(ctx), binding) for name, binding in inputs.items()}
         self.scratch = {binding: (GrowingBuffer(ctx), uints) for binding, uints in (scratch or {}).items()}

@@ -18,6 +18,7 @@ from surfelwarp.render.scatter import Scatter
 
 MAX_SIZE_PX = 255.0   # a disk is tried on at most this square of pixels about its centre
 MIN_COS = 0.05        # grazing-ray clamp of |cos(ray, normal)| (about 87 degrees)
+MAX_SIDE_PX = 32767   # the shader packs a pixel's column and row in 16 bits each
 
 
 @dataclass(frozen=True)
@@ -57,6 +58,8 @@ def render_solver_maps(positions: np.ndarray, normals: np.ndarray, radii: np.nda
     elements = np.arange(n, dtype=np.uint32) if indices is None else _elements(indices, n)
     fill = np.zeros(0, np.uint32) if fill_indices is None else _elements(fill_indices, n)
     intr = intrinsics
+    if max(intr.width, intr.height) > MAX_SIDE_PX:
+        raise ValueError(f"images of at most {MAX_SIDE_PX} pixels a side, not {intr.width}x{intr.height}")
     index = Scatter.of("surfel_splat.comp.glsl", {"positions": 0, "elements": 3, "normals": 4, "radii": 5},
                          scratch={6: 2}).run(
         len(elements) + len(fill), intr.height, intr.width,

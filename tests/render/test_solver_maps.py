@@ -99,16 +99,21 @@ def test_solver_maps_match_ray_disk_reference(groups_x, monkeypatch):
     assert not maps.vertex[~hit].any()
 
 
-def test_small_disks_match_the_reference():
-    """Disks 0.6-3 px in radius, as a model's surfels are: each pixel whose ray meets one is found
-    (the pixels tried about a disk barely exceed its projection), and no other."""
-    rng = np.random.default_rng(11)
-    m = 4000
+def small_disks(m, seed):
+    """m disks 0.6-3 px in radius anywhere in view, 0.6-1.5 m away, mostly facing the camera."""
+    rng = np.random.default_rng(seed)
     z = rng.uniform(0.6, 1.5, m)
     u, v = rng.uniform(0, K.width, m), rng.uniform(0, K.height, m)
     p = np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], 1).astype(np.float32)
     n = unit(-unit(p) + rng.normal(scale=0.3, size=(m, 3))).astype(np.float32)
     r = (rng.uniform(0.6, 3.0, m) * z / K.fx).astype(np.float32)
+    return p, n, r
+
+
+def test_small_disks_match_the_reference():
+    """Disks 0.6-3 px in radius, as a model's surfels are: each pixel whose ray meets one is found
+    (the pixels tried about a disk barely exceed its projection), and no other."""
+    p, n, r = small_disks(4000, seed=11)
     maps = render_solver_maps(p, n, r, K)
     ref, unsure, _ = reference(p, n, r, K)
     checked = ~unsure
@@ -123,13 +128,8 @@ def test_equal_depths_go_to_the_lowest_index_whatever_the_order_drawn():
     """Every disk twice, drawn in reverse order (the higher copy first): each pixel goes to the
     lower copy, on every pixel the disk wins. The second pass tries only the pixels a surfel
     could win in the first, so a copy that finds its own key already there must still try them."""
-    rng = np.random.default_rng(12)
     m = 3000
-    z = rng.uniform(0.6, 1.5, m)
-    u, v = rng.uniform(0, K.width, m), rng.uniform(0, K.height, m)
-    p = np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], 1).astype(np.float32)
-    n = unit(-unit(p) + rng.normal(scale=0.3, size=(m, 3))).astype(np.float32)
-    r = (rng.uniform(0.6, 3.0, m) * z / K.fx).astype(np.float32)
+    p, n, r = small_disks(m, seed=12)
     once = render_solver_maps(p, n, r, K).index
     twice = render_solver_maps(np.tile(p, (2, 1)), np.tile(n, (2, 1)), np.tile(r, 2), K,
                                indices=np.arange(2 * m)[::-1]).index
@@ -206,3 +206,9 @@ def test_no_surfels_or_all_behind_the_camera_give_empty_maps():
     for pos in (np.zeros((0, 3)), -p, p * 1e-3):
         maps = render_solver_maps(pos, n[:len(pos)], r[:len(pos)], K)
         assert (maps.index == -1).all() and not maps.vertex.any() and not maps.normal.any()
+
+
+def test_images_wider_than_the_packed_pixel_boxes_are_refused():
+    p, n, r = scene()
+    with pytest.raises(ValueError, match="32767 pixels a side"):
+        render_solver_maps(p, n, r, Intrinsics(300.0, 300.0, 20000.0, 119.5, 40000, 240))

@@ -23,7 +23,7 @@ class FreeSpaceTerm(BaseTerm):
         """(energy, points, residuals, gradients (3, S), IRLS weights) at the live points: the
         points the camera saw through (and facing it) and theirs. An accepted candidate is the
         next linearisation point with the same live arrays (re-associated, not warped again), so
-        the last answer is kept for them: ~5.5 -> ~2.3 evaluations a sheet frame."""
+        the last answer is kept for them: 5.5 -> 3.3 evaluations a sheet frame."""
         if self._last is not None and self._last[0] is at.live and self._last[1] is at.live_normals:
             return self._last[2]
         r, grad = self.free_space.residuals(at.live)
