@@ -3,7 +3,7 @@ import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.io.sequence import open_sequence
-from surfelwarp.preprocess import PreprocessParams, bilateral_filter, preprocess
+from surfelwarp.preprocess import PreprocessParams, bilateral_filter, preprocess, radius_map
 
 from conftest import shared_data
 
@@ -140,3 +140,17 @@ def test_the_filter_s_exp_is_exp_to_float32_precision():
     got = np.array([_exp(v) for v in x], np.float64)
     error = np.abs(got / np.exp(x.astype(np.float64)) - 1)
     assert error[x > -3].max() < 2e-6 and error.max() < 5e-4, (error[x > -3].max(), error.max())
+
+
+def test_radius_map_is_the_whole_image_formula_to_the_bit():
+    """The compiled pass against Eq. 4 as numpy computes it (float64, then float32)."""
+    rng = np.random.default_rng(5)
+    intr = Intrinsics(525.0, 523.5, 319.5, 239.5, 64, 48)
+    depth = rng.uniform(0.3, 3.0, (48, 64)).astype(np.float32)
+    normals = rng.normal(size=(48, 64, 3)).astype(np.float32)
+    normals /= np.linalg.norm(normals, axis=2, keepdims=True)
+    valid = rng.random((48, 64)) < 0.7
+    nz = np.maximum(np.abs(normals[..., 2]), np.cos(np.deg2rad(75.0)))
+    formula = (np.sqrt(2.0) * depth / (intr.focal_px * nz)).astype(np.float32)
+    assert np.array_equal(radius_map(depth, normals, intr, 75.0), formula)
+    assert np.array_equal(radius_map(depth, normals, intr, 75.0, valid), np.where(valid, formula, 0))
