@@ -78,3 +78,27 @@ def test_colours_and_degenerate_input():
     assert empty.faces.shape == (0, 3) and empty.colors.shape == (0, 3)
     assert voxel_size_for(np.array([0.001, 0.002, 0.003, np.nan])) == 0.002
     assert voxel_size_for(np.array([])) == 0.004
+
+
+def test_cells_near_are_the_64_neighbours_of_every_surfels_cell_once_in_order():
+    from surfelwarp.geometry.surfel_mesh import _cells_near
+    rng = np.random.default_rng(2)
+    base = rng.integers(-40, 40, size=(3000, 3))
+    base[1000:1500] = base[:500]                       # cells shared by several surfels
+    offsets = np.stack(np.meshgrid(*[np.arange(-1, 3)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    expected = np.unique((base[:, None, :] + offsets[None]).reshape(-1, 3), axis=0)
+    assert np.array_equal(_cells_near(base), expected)
+    assert np.array_equal(_cells_near(np.array([[5, -7, 0]])), np.unique(offsets + [5, -7, 0], axis=0))
+
+
+@pytest.mark.parametrize("options", [{}, {"return_inverse": True}, {"return_index": True, "return_inverse": True}])
+def test_unique_rows_are_numpys_unique_by_rows(options):
+    from surfelwarp.geometry.surfel_mesh import _unique_rows
+    rng = np.random.default_rng(3)
+    for rows in (rng.integers(-9, 9, size=(5000, 3)), rng.integers(0, 3, size=(1, 3)), np.zeros((0, 3), np.int64),
+                 np.array([[-2**40, 0, 2**40], [2**40, 0, -2**40], [-2**40, 0, 2**40]])):   # too wide to pack
+        expected, got = np.unique(rows, axis=0, **options), _unique_rows(rows, **options)
+        expected, got = (expected, got) if options else ((expected,), (got,))
+        assert len(got) == len(expected)
+        for a, b in zip(expected, got):
+            assert a.shape == b.shape and np.array_equal(a, b)
