@@ -179,29 +179,32 @@ def confidence_map(intrinsics: Intrinsics, phi: float) -> np.ndarray:
     return out
 
 
+SQRT2 = float(np.sqrt(2.0))
+
+
 def radius_map(depth_m: np.ndarray, normals: np.ndarray, intrinsics: Intrinsics,
                max_view_angle_deg: float, valid: np.ndarray | None = None) -> np.ndarray:
     """r = sqrt(2) d / (f |n_z|) (SurfelWarp Eq. 4), with |n_z| floored at the grazing-angle
     cosine; 0 outside `valid` (if given). float64 arithmetic, float32 result."""
     valid = np.ones(np.shape(depth_m), bool) if valid is None else np.asarray(valid, bool)
     out = np.zeros(np.shape(depth_m), np.float32)
-    _radii(np.asarray(depth_m, np.float32), np.asarray(normals, np.float32), valid, float(intrinsics.focal_px),
+    _radii(np.asarray(depth_m), np.asarray(normals), valid, float(intrinsics.focal_px),
            float(np.cos(np.deg2rad(max_view_angle_deg))), out)
     return out
 
 
 @numba.njit(cache=True, nogil=True)
 def _radii(depth, normals, valid, focal, min_cos, out):
-    """The valid pixels' radii in one pass (the whole-image numpy form made five float64 maps)."""
+    """The valid pixels' radii in one pass, as np.maximum and float64 would give them (NaN
+    kept); the whole-image numpy form made five float64 maps."""
     h, w = depth.shape
     for y in range(h):
         for x in range(w):
             if valid[y, x]:
-                nz = max(abs(np.float64(normals[y, x, 2])), min_cos)
+                nz = abs(np.float64(normals[y, x, 2]))
+                if nz < min_cos:
+                    nz = min_cos
                 out[y, x] = np.float32(SQRT2 * np.float64(depth[y, x]) / (focal * nz))
-
-
-SQRT2 = float(np.sqrt(2.0))
 
 
 def preprocess(depth_m: np.ndarray, intrinsics: Intrinsics, frame_index: int, time: int,

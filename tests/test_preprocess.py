@@ -154,3 +154,10 @@ def test_radius_map_is_the_whole_image_formula_to_the_bit():
     formula = (np.sqrt(2.0) * depth / (intr.focal_px * nz)).astype(np.float32)
     assert np.array_equal(radius_map(depth, normals, intr, 75.0), formula)
     assert np.array_equal(radius_map(depth, normals, intr, 75.0, valid), np.where(valid, formula, 0))
+    # float64 inputs stay float64 until the result, and a NaN normal gives NaN as numpy does.
+    normals[0, 0] = np.nan
+    depth64, normals64 = depth.astype(np.float64) + 1e-9, normals.astype(np.float64)
+    nz = np.maximum(np.abs(normals64[..., 2]), np.cos(np.deg2rad(75.0)))
+    formula = (np.sqrt(2.0) * depth64 / (intr.focal_px * nz)).astype(np.float32)
+    assert np.array_equal(radius_map(depth64, normals64, intr, 75.0), formula, equal_nan=True)
+    assert np.isnan(formula[0, 0])
