@@ -108,11 +108,20 @@ def _cells_near(base: np.ndarray) -> np.ndarray:
     ~2 s for 270k surfels)."""
     lo = base.min(0) - 1
     dims = base.max(0) + 3 - lo
-    keys = np.unique(((base[:, 0] - lo[0]) * dims[1] + (base[:, 1] - lo[1])) * dims[2] + (base[:, 2] - lo[2]))
+    keys = np.unique(_packed(base, lo, dims))
     for stride in (dims[1] * dims[2], dims[2], 1):
         # Four sorted runs: a stable sort (timsort) merges them, faster than np.unique's hash.
         keys = np.sort((keys[None, :] + stride * np.arange(-1, 3)[:, None]).reshape(-1), kind="stable")
         keys = keys[np.concatenate([[True], keys[1:] != keys[:-1]])]
+    return _unpacked(keys, lo, dims)
+
+
+def _packed(rows: np.ndarray, lo: np.ndarray, dims: np.ndarray) -> np.ndarray:
+    """(N,) int64 keys of integer rows (N, 3) in lo .. lo + dims - 1, in their lexicographic order."""
+    return ((rows[:, 0] - lo[0]) * dims[1] + (rows[:, 1] - lo[1])) * dims[2] + (rows[:, 2] - lo[2])
+
+
+def _unpacked(keys: np.ndarray, lo: np.ndarray, dims: np.ndarray) -> np.ndarray:
     return np.stack([keys // (dims[1] * dims[2]), keys // dims[2] % dims[1], keys % dims[2]], 1) + lo
 
 
@@ -124,11 +133,9 @@ def _unique_rows(rows: np.ndarray, **options):
     dims = (rows.max(0) - lo + 1) if len(rows) else np.ones(3, np.int64)
     if float(dims[0]) * float(dims[1]) * float(dims[2]) >= 2.0 ** 62:
         return np.unique(rows, axis=0, **options)
-    keys = ((rows[:, 0] - lo[0]) * dims[1] + (rows[:, 1] - lo[1])) * dims[2] + (rows[:, 2] - lo[2])
-    out = np.unique(keys, **options)
+    out = np.unique(_packed(rows, lo, dims), **options)
     out = out if isinstance(out, tuple) else (out,)
-    k = out[0]
-    unique = np.stack([k // (dims[1] * dims[2]), k // dims[2] % dims[1], k % dims[2]], 1) + lo
+    unique = _unpacked(out[0], lo, dims)
     return (unique,) + out[1:] if len(out) > 1 else unique
 
 
