@@ -89,12 +89,21 @@ def _gather(index, positions, normals):
 
 def maps_to_world(maps: SolverMaps, T_camera_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Solver maps in world coordinates, zero where no surfel was drawn (as rigid ICP expects)."""
-    hit = (maps.index >= 0).astype(np.float32)
     R = np.ascontiguousarray(T_camera_to_world[:3, :3].T, np.float32)
-    # Whole maps (no masked gathers): the empty pixels' zeros turn into zeros, and the shift is
-    # added where a surfel was drawn, a component at a time (broadcasting a (3,) row over the
-    # last axis runs numpy's inner loop three elements long).
-    vertex = maps.vertex @ R
-    for i in range(3):
-        vertex[..., i] += np.float32(T_camera_to_world[i, 3]) * hit
-    return vertex, maps.normal @ R
+    # Whole maps (no masked gathers): the empty pixels' zeros turn into zeros. As (H*W, 3) rows,
+    # one BLAS product a map: (H, W, 3) @ R made one per image row (both maps ~6 -> ~4 ms at
+    # 640x480, the same bits).
+    shape = maps.vertex.shape
+    vertex = np.ascontiguousarray(maps.vertex, np.float32).reshape(-1, 3) @ R
+    _shift_drawn(vertex, maps.index.reshape(-1), np.asarray(T_camera_to_world[:3, 3], np.float32))
+    return vertex.reshape(shape), (np.ascontiguousarray(maps.normal, np.float32).reshape(-1, 3) @ R).reshape(shape)
+
+
+@numba.njit(cache=True, nogil=True)
+def _shift_drawn(vertex, index, t):
+    """vertex[p] += t * hit[p], hit 1 where a surfel was drawn and 0 elsewhere: numpy's
+    float32 operations in its order (an empty pixel gets t * 0, so its zero keeps numpy's sign)."""
+    for p in range(len(index)):
+        hit = np.float32(1.0) if index[p] >= 0 else np.float32(0.0)
+        for i in range(3):
+            vertex[p, i] += t[i] * hit

@@ -66,6 +66,26 @@ _CHAMFER_MIN = 0.95
 _WINDOW_PAD_PX = 32    # the distance transforms' windows reach this far past their points
 
 
+def _holes(invalid: np.ndarray, hole_px: int) -> np.ndarray:
+    """The invalid pixels a disc of radius hole_px fits in (their opening by the disc, the
+    image's edge replicated), opened only over the box of valid pixels and 2 hole_px + 2 about
+    it: farther out every pixel is invalid and its own disc fits (a hand's frame, valid on a
+    sixteenth of the image: 3.5 -> 0.7 ms)."""
+    valid = ~invalid
+    rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
+    empty = np.ones(invalid.shape, bool)
+    if len(rows) == 0:
+        return empty
+    h, w = invalid.shape
+    e = 2 * hole_px + 2
+    r0, r1, c0, c1 = max(rows[0] - e, 0), min(rows[-1] + e + 1, h), max(cols[0] - e, 0), min(cols[-1] + e + 1, w)
+    k = 2 * hole_px + 1
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    empty[r0:r1, c0:c1] = cv2.morphologyEx(invalid[r0:r1, c0:c1].astype(np.uint8), cv2.MORPH_OPEN, disc,
+                                           borderType=cv2.BORDER_REPLICATE) > 0
+    return empty
+
+
 class FreeSpace:
     """One observation's free space as seen from its camera (camera-frame depth, world pose)."""
 
@@ -79,10 +99,7 @@ class FreeSpace:
         if beyond is not None:
             self.depth = np.where(beyond, np.float32(np.inf), self.depth)
         h, w = self.depth.shape
-        invalid = (self.depth <= 0).astype(np.uint8)
-        k = 2 * params.hole_px + 1
-        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-        self.empty = cv2.morphologyEx(invalid, cv2.MORPH_OPEN, disc, borderType=cv2.BORDER_REPLICATE) > 0
+        self.empty = _holes(self.depth <= 0, params.hole_px)
         b = params.border_px
         self.judged = np.zeros((h, w), bool)
         self.judged[b:h - b, b:w - b] = True

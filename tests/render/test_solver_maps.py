@@ -227,3 +227,12 @@ def test_maps_to_world_moves_the_drawn_pixels_and_leaves_the_rest_zero():
     np.testing.assert_allclose(world_vertex[drawn], vertex[drawn] @ T[:3, :3].T + T[:3, 3], atol=1e-5)
     np.testing.assert_allclose(world_normal[drawn], normal[drawn] @ T[:3, :3].T, atol=1e-6)
     assert not world_vertex[~drawn].any() and not world_normal[~drawn].any()
+    # The same bits as numpy's product a row at a time and the shift added where drawn (on
+    # empty pixels given negative zeros).
+    vertex[~drawn] = -0.0
+    world_vertex, world_normal = maps_to_world(SolverMaps(index, vertex, normal, K), T)
+    R = np.ascontiguousarray(T[:3, :3].T, np.float32)
+    expected = vertex @ R
+    for i in range(3):
+        expected[..., i] += np.float32(T[i, 3]) * drawn.astype(np.float32)
+    assert world_vertex.tobytes() == expected.tobytes() and world_normal.tobytes() == (normal @ R).tobytes()

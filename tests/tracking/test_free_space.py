@@ -6,7 +6,7 @@ from surfelwarp.deform.warp_field import WarpField, WarpFieldParams, apply_updat
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import se3_exp
 from surfelwarp.tracking.blend_jacobian import data_jacobian
-from surfelwarp.tracking.free_space import FreeSpace, SilhouetteParams, _ball_widths, _chamfer
+from surfelwarp.tracking.free_space import FreeSpace, SilhouetteParams, _ball_widths, _chamfer, _holes
 from surfelwarp.tracking.gauss_newton import NonRigidParams, solve_nonrigid
 
 INTR = Intrinsics(300.0, 300.0, 159.5, 119.5, 320, 240)
@@ -254,3 +254,29 @@ def test_the_term_reuses_its_answer_for_the_same_live_points_only():
     again = term.seen_through(SimpleNamespace(live=back, live_normals=normals))
     assert list(again[1]) == [] and again[0] == 0
     assert term.seen_through(SimpleNamespace(live=live.copy(), live_normals=normals))[0] == first[0]
+
+
+def test_holes_opened_about_the_valid_pixels_equal_the_whole_images_opening():
+    """The opening is made only over the box of valid pixels and 2 hole_px + 2 around it: the
+    same mask as cv2's over the whole image, with valid pixels at the edges and corners (the
+    replicated border), none, all, and hole_px 0."""
+    def whole(invalid, hole_px):
+        k = 2 * hole_px + 1
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+        return cv2.morphologyEx(invalid.astype(np.uint8), cv2.MORPH_OPEN, disc, borderType=cv2.BORDER_REPLICATE) > 0
+    rng = np.random.default_rng(4)
+    cases = [np.ones((30, 40), bool), np.zeros((30, 40), bool), square_depth(hole_px=3) <= 0]
+    for _ in range(150):
+        h, w = rng.integers(1, 70, 2)
+        invalid = np.ones((h, w), bool)
+        for _ in range(rng.integers(1, 4)):
+            y, x = rng.integers(0, h), rng.integers(0, w)
+            invalid[max(y - rng.integers(0, 9), 0):y + rng.integers(1, 9), max(x - rng.integers(0, 9), 0):x + rng.integers(1, 9)] = False
+        cases.append(invalid ^ (rng.random((h, w)) < 0.03))
+    for i, invalid in enumerate(cases):
+        hole_px = int(rng.integers(0, 10))
+        assert np.array_equal(_holes(invalid, hole_px), whole(invalid, hole_px)), (i, hole_px)
+    small = np.ones((200, 200), bool)
+    small[90:110, 90:110] = False
+    small[100, 100] = True          # a hole too small for the disc: not free space
+    assert _holes(small, 8).sum() == small.sum() - 1

@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from surfelwarp.geometry.camera import KINECT_AXIAL_NOISE, axial_noise_sigma_m
-from surfelwarp.methods.surfelwarp.fusion_kernels import best_in_windows, fuse_rows, mark_redundant
+from surfelwarp.methods.surfelwarp.fusion_kernels import best_in_windows, fuse_rows, mark_covered, mark_redundant
 from surfelwarp.methods.surfelwarp.surfels import SurfelModel
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.render.base import FAR_M, NEAR_M
@@ -223,25 +223,13 @@ def unmatched_depth_pixels(obs: CameraObservation, fused_pixel_mask: np.ndarray,
     if maps is None:
         return unmatched
     rows, cols = np.nonzero(unmatched)
-    s, c = maps.supersample, params.coverage_px
-    h, w = unmatched.shape
     depth_v, depth_n = obs.vertex_map[rows, cols], obs.normal_map[rows, cols]
     # The gate, plus the footprint of the pixels reached across.
     z = obs.depth_m[rows, cols]
     max_d2 = (distance_gate_m(z, params) + np.sqrt(2) * params.coverage_px * z / obs.intrinsics.focal_px) ** 2
-    # The fine pixels coverage_px depth pixels around a pixel are the blocks of its neighbours.
-    blocks = maps.index.reshape(h, s, w, s)
     covered = np.zeros(len(rows), bool)
-    for dy in range(-c, c + 1):
-        for dx in range(-c, c + 1):
-            open_ = np.flatnonzero(~covered & (rows + dy >= 0) & (rows + dy < h) & (cols + dx >= 0) & (cols + dx < w))
-            k = blocks[rows[open_] + dy, :, cols[open_] + dx, :].reshape(len(open_), s * s)
-            pix, slot = np.nonzero(k >= 0)
-            kc, pix = k[pix, slot], open_[pix]
-            diff = np.take(maps.points, kc, axis=0) - np.take(depth_v, pix, axis=0)
-            near = np.einsum("ij,ij->i", diff, diff) <= max_d2[pix]
-            same_side = np.einsum("ij,ij->i", np.take(maps.normals, kc, axis=0), np.take(depth_n, pix, axis=0)) > 0
-            covered[pix[near & same_side]] = True
+    mark_covered(maps.index, maps.supersample, rows, cols, params.coverage_px, maps.points, maps.normals,
+                 depth_v, depth_n, max_d2, covered)
     unmatched[rows[covered], cols[covered]] = False
     return unmatched
 

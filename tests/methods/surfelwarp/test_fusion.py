@@ -319,6 +319,51 @@ def test_covered_pixels_are_not_appended(gl, obs):
     assert own.sum() > 0.3 * obs.num_valid
 
 
+def unmatched_reference(obs, fused_pixel_mask, maps, params=FusionParams()):
+    """unmatched_depth_pixels as whole-array numpy passes, one a neighbour offset."""
+    unmatched = obs.valid & ~fused_pixel_mask
+    rows, cols = np.nonzero(unmatched)
+    s, c = maps.supersample, params.coverage_px
+    h, w = unmatched.shape
+    depth_v, depth_n = obs.vertex_map[rows, cols], obs.normal_map[rows, cols]
+    z = obs.depth_m[rows, cols]
+    max_d2 = (fusion.distance_gate_m(z, params) + np.sqrt(2) * params.coverage_px * z / obs.intrinsics.focal_px) ** 2
+    blocks = maps.index.reshape(h, s, w, s)
+    covered = np.zeros(len(rows), bool)
+    for dy in range(-c, c + 1):
+        for dx in range(-c, c + 1):
+            open_ = np.flatnonzero(~covered & (rows + dy >= 0) & (rows + dy < h) & (cols + dx >= 0) & (cols + dx < w))
+            k = blocks[rows[open_] + dy, :, cols[open_] + dx, :].reshape(len(open_), s * s)
+            pix, slot = np.nonzero(k >= 0)
+            kc, pix = k[pix, slot], open_[pix]
+            diff = maps.points[kc] - depth_v[pix]
+            near = np.einsum("ij,ij->i", diff, diff) <= max_d2[pix]
+            same_side = np.einsum("ij,ij->i", maps.normals[kc], depth_n[pix]) > 0
+            covered[pix[near & same_side]] = True
+    unmatched[rows[covered], cols[covered]] = False
+    return unmatched
+
+
+def test_compiled_coverage_equals_the_numpy_passes(gl, obs):
+    """The compiled coverage search against the numpy passes it replaced, on models that cover
+    all, some or none of the pixels (shifted along the rays by about the gate, turned, thinned,
+    facing away), coverage 0-2 pixels."""
+    model = model_from(obs)
+    rng = np.random.default_rng(3)
+    fused = rng.random(obs.valid.shape) < 0.3
+    models = [model, model.select(np.arange(len(model)) % 3 == 0), with_live(model, normal=-model.live_normal),
+              with_live(model, along_rays(model, 0.012)), with_live(model, along_rays(model, -0.02)),
+              with_live(model, normal=tilted(model.live_normal.astype(np.float64), np.deg2rad(80)))]
+    counts = []
+    for m in models:
+        for coverage in (0, 1, 2):
+            params = FusionParams(coverage_px=coverage)
+            expected = unmatched_reference(obs, fused, render(m), params)
+            assert np.array_equal(unmatched_depth_pixels(obs, fused, render(m), params), expected)
+            counts.append(int(expected.sum()))
+    assert min(counts) < 0.05 * obs.num_valid and max(counts) > 0.6 * obs.num_valid, counts
+
+
 def test_compiled_searches_equal_a_per_pixel_reference():
     """The compiled window search and duplicate marking against plain loops over a random
     index map with ties in confidence (the order rules decide)."""
