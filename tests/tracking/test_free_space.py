@@ -270,8 +270,9 @@ def test_holes_opened_about_the_valid_pixels_equal_the_whole_images_opening():
         h, w = rng.integers(1, 70, 2)
         invalid = np.ones((h, w), bool)
         for _ in range(rng.integers(1, 4)):
-            y, x = rng.integers(0, h), rng.integers(0, w)
-            invalid[max(y - rng.integers(0, 9), 0):y + rng.integers(1, 9), max(x - rng.integers(0, 9), 0):x + rng.integers(1, 9)] = False
+            y0, x0 = rng.integers(0, h), rng.integers(0, w)
+            y1, x1 = y0 + rng.integers(1, 9), x0 + rng.integers(1, 9)
+            invalid[max(y0 - rng.integers(0, 9), 0):y1, max(x0 - rng.integers(0, 9), 0):x1] = False
         cases.append(invalid ^ (rng.random((h, w)) < 0.03))
     for i, invalid in enumerate(cases):
         hole_px = int(rng.integers(0, 10))
