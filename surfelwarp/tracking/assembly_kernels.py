@@ -14,20 +14,32 @@ from surfelwarp.tracking.blend_jacobian import residual_row
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def point_sums_split(sel, b, signed, points, normals, r, w, knn, slots, double, pair_s, pair_t, compact, A, e,
-                     tasks):
-    """_point_sums over `tasks` consecutive parts of sel, each into its own sums (a thread each),
-    added in order."""
+                     tasks, by_rows):
+    """_point_sums on `tasks` threads. by_rows: the rows of A and e split into `tasks` ranges, a
+    thread each walking all of sel in order, so every sum is made in sel's order (one thread's
+    bits); else `tasks` consecutive parts of sel, each into its own sums, added in order. The
+    correspondences' derivative rows are made first, a part of sel a thread."""
     n = len(sel)
+    R = np.empty((n, normals.shape[0], 8))
+    for t in numba.prange(tasks):
+        for c in range(n * t // tasks, n * (t + 1) // tasks):
+            i = sel[c]
+            for h in range(normals.shape[0]):
+                residual_row(b[i], points[0, i], points[1, i], points[2, i], normals[h, c, 0], normals[h, c, 1],
+                             normals[h, c, 2], R[c, h])
+    if by_rows:
+        rows_A, rows_e = A.shape[0], e.shape[0]
+        for t in numba.prange(tasks):
+            _point_sums(sel, signed, R, r, w, knn, slots, double, pair_s, pair_t, compact, A, e,
+                        rows_A * t // tasks, rows_A * (t + 1) // tasks, rows_e * t // tasks, rows_e * (t + 1) // tasks)
+        return
     more_A = np.zeros((tasks - 1, A.shape[0], A.shape[1]))
     more_e = np.zeros((tasks - 1, e.shape[0], e.shape[1]))
     for t in numba.prange(tasks):
         lo, hi = n * t // tasks, n * (t + 1) // tasks
-        if t == 0:
-            _point_sums(sel[lo:hi], b, signed, points, normals[:, lo:hi], r[:, lo:hi], w[lo:hi], knn, slots,
-                        double, pair_s, pair_t, compact, A, e)
-        else:
-            _point_sums(sel[lo:hi], b, signed, points, normals[:, lo:hi], r[:, lo:hi], w[lo:hi], knn, slots,
-                        double, pair_s, pair_t, compact, more_A[t - 1], more_e[t - 1])
+        out_A, out_e = (A, e) if t == 0 else (more_A[t - 1], more_e[t - 1])
+        _point_sums(sel[lo:hi], signed, R[lo:hi], r[:, lo:hi], w[lo:hi], knn, slots, double, pair_s, pair_t,
+                    compact, out_A, out_e, 0, A.shape[0], 0, e.shape[0])
     for t in range(tasks - 1):
         A += more_A[t]
         e += more_e[t]
@@ -61,18 +73,16 @@ def _sandwich_range(D, lo, hi, A, sym, out, start, end):
 
 
 @numba.njit(cache=True, nogil=True)
-def _point_sums(sel, b, signed, points, normals, r, w, knn, slots, double, pair_s, pair_t, compact, A, e):
-    """A[slot] and e[node] summed over the surfels sel, each with its G rows; `compact` maps
+def _point_sums(sel, signed, R, r, w, knn, slots, double, pair_s, pair_t, compact, A, e, A_lo, A_hi, e_lo, e_hi):
+    """A[slot] and e[node] summed over the surfels sel, each with its G derivative rows R
+    (len(sel), G, 8), into the rows A_lo:A_hi of A and e_lo:e_hi of e alone; `compact` maps
     slots to rows of A (empty: the slots are the rows)."""
-    groups = normals.shape[0]
-    rows = np.empty((groups, 8))
+    groups = R.shape[1]
     Q = np.empty(36)
     k = knn.shape[1]
     for c in range(len(sel)):
         i = sel[c]
-        for h in range(groups):
-            residual_row(b[i], points[0, i], points[1, i], points[2, i], normals[h, c, 0], normals[h, c, 1],
-                         normals[h, c, 2], rows[h])
+        rows = R[c]
         q = 0
         for a in range(8):
             for a2 in range(a, 8):
@@ -81,18 +91,22 @@ def _point_sums(sel, b, signed, points, normals, r, w, knn, slots, double, pair_
                     Q[q] += rows[h, a] * rows[h, a2]
                 q += 1
         for p in range(len(pair_s)):
-            coef = w[c] * signed[i, pair_s[p]] * signed[i, pair_t[p]]
-            if double[i, p]:
-                coef *= 2.0
             slot = slots[i, p]
             if len(compact):
                 slot = compact[slot]
+            if slot < A_lo or slot >= A_hi:
+                continue
+            coef = w[c] * signed[i, pair_s[p]] * signed[i, pair_t[p]]
+            if double[i, p]:
+                coef *= 2.0
             for q in range(36):
                 A[slot, q] += coef * Q[q]
         for h in range(groups):
             wr = w[c] * r[h, c]
             for s in range(k):
-                g = signed[i, s] * wr
                 node = knn[i, s]
+                if node < e_lo or node >= e_hi:
+                    continue
+                g = signed[i, s] * wr
                 for a in range(8):
                     e[node, a] += g * rows[h, a]

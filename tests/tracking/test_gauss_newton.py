@@ -471,6 +471,44 @@ def test_factored_normal_equations_equal_the_generic_ones(problem, assembly, mon
     assert np.allclose(diag, H.reshape(m, 6, m, 6)[np.arange(m), :, np.arange(m)])
 
 
+def test_sums_split_by_rows_have_one_threads_bits(problem, monkeypatch):
+    """Calls below CHUNK split the rows of the sums between threads, each walking every
+    correspondence: the blocks and gradient are one thread's to the bit (three rows a
+    correspondence, as colour features have, and one)."""
+    from surfelwarp.geometry.dual_quaternion import _components, dq_blend_indexed
+    from surfelwarp.tracking import assembly as assembly_module
+    from surfelwarp.tracking.assembly import BlockPattern
+    from surfelwarp.tracking.blend_jacobian import twist_dual_quaternions
+    rng = np.random.default_rng(11)
+    field = turned_field(problem)
+    knn, w = problem.knn.astype(np.int64), problem.weights.astype(np.float64)
+    pattern = BlockPattern(field.num_nodes, field.graph, knn)
+    dq = field.dual_quaternions()
+    b, signed = dq_blend_indexed(dq, knn, w)
+    D = twist_dual_quaternions(field, dq)
+    for groups in (1, 3):
+        sel = np.sort(rng.choice(len(knn), 2000, replace=False))
+        n = rng.normal(size=(groups, len(sel), 3))
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        r, rw = rng.normal(size=(groups, len(sel))) * 0.01, rng.uniform(0.2, 1.0, len(sel))
+        if groups == 1:
+            n, r = n[0], r[0]
+        args = (pattern, sel, b, signed, _components(problem.points.astype(np.float64)), n, D, r, rw)
+        monkeypatch.undo()
+        monkeypatch.setattr(assembly_module, "TASKS", 1)
+        one = assembly_module.point_blocks(*args)
+        monkeypatch.setattr(assembly_module, "TASKS", 3)
+        monkeypatch.setattr(assembly_module, "MIN_SPLIT", 16)
+        split = assembly_module.point_blocks(*args)
+        assert one[0].tobytes() == split[0].tobytes() and one[1].tobytes() == split[1].tobytes()
+        assert np.abs(one[0]).max() > 0
+        # Parts summed apart (the large calls' split) round differently: the test can tell.
+        monkeypatch.setattr(assembly_module, "CHUNK", 64)
+        parts = assembly_module.point_blocks(*args)
+        assert np.allclose(parts[0], one[0], rtol=0, atol=1e-12 * np.abs(one[0]).max())
+        assert parts[0].tobytes() != one[0].tobytes()
+
+
 @pytest.mark.parametrize("assembly", ["point_blocks", "sparse", "sparse split"])
 def test_grouped_rows_equal_the_rows_one_by_one(problem, assembly, monkeypatch):
     """Three rows a correspondence (a colour feature's axes), summed into one product before its
