@@ -1,10 +1,14 @@
 """The frame loop shared by every method: read, preprocess, process, save, checkpoint."""
 from __future__ import annotations
 
+import os
 import sys
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 from tqdm import tqdm
@@ -13,9 +17,9 @@ from surfelwarp.errors import InputError
 from surfelwarp.geometry.surfel_mesh import mesh_of
 from surfelwarp.io import checkpoint
 from surfelwarp.io.outputs import RunOutputs, rss_mb
-from surfelwarp.io.sequence import Sequence
+from surfelwarp.io.sequence import FrameFiles, Sequence
 from surfelwarp.methods.protocol import Method
-from surfelwarp.preprocess import PreprocessParams, preprocess
+from surfelwarp.preprocess import CameraObservation, PreprocessParams, preprocess
 from surfelwarp.render.views import frame_panel, live_view
 
 
@@ -76,6 +80,52 @@ def _finish(outputs: RunOutputs, method: Method, render: bool) -> None:
     method.finish(outputs.out_dir, outputs.frames)
 
 
+def _lowest_priority() -> None:
+    """The calling thread at the lowest CPU priority (Linux, where a thread has its own nice
+    value; elsewhere nothing): it gets a core the frame leaves idle, not time from the frame's
+    own threads (at normal priority the read-ahead slowed twist-limb's feature stage ~10 %)."""
+    if sys.platform.startswith("linux"):
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        except OSError:
+            pass
+
+
+def _read_ahead(seq: Sequence, first: int, params: PreprocessParams, method: Method
+                ) -> Iterator[tuple[int, FrameFiles, np.ndarray, np.ndarray | None, CameraObservation, dict, dict]]:
+    """The frames from `first`: (position, files, depth, colour, observation, the seconds the frame
+    waited for them by stage, the seconds they took by stage). Each is read, preprocessed and
+    given to method.ahead on one worker while the frame before it is processed: a frame is
+    mostly single-threaded numpy, and the worker takes the other core. The wait is the tail of
+    the worker's job: its last stages first."""
+    def job(position: int, files: FrameFiles):
+        t0 = time.perf_counter()
+        depth, color = seq.read_depth(files), seq.read_color(files)
+        t1 = time.perf_counter()
+        obs = preprocess(depth, seq.intrinsics, files.index, position, params, color)
+        t2 = time.perf_counter()
+        method.ahead(obs)
+        return depth, color, obs, {"read": t1 - t0, "preprocess": t2 - t1, "ahead": time.perf_counter() - t2}
+
+    todo = list(enumerate(seq.files[first:], start=first))
+    pool = ThreadPoolExecutor(1, thread_name_prefix="read-ahead", initializer=_lowest_priority)
+    try:
+        coming = pool.submit(job, *todo[0]) if todo else None
+        for k, (position, files) in enumerate(todo):
+            t0 = time.perf_counter()
+            depth, color, obs, took = coming.result()
+            left = time.perf_counter() - t0
+            coming = pool.submit(job, *todo[k + 1]) if k + 1 < len(todo) else None
+            waited = {}
+            for stage in ("ahead", "preprocess", "read"):
+                waited[stage] = min(left, took[stage])
+                left -= waited[stage]
+            waited["read"] += left                       # the hand-over itself
+            yield position, files, depth, color, obs, {s: waited[s] for s in took}, took
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
 def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: int = 10,
                  preprocess_params: PreprocessParams = PreprocessParams(), input_config: dict | None = None,
                  progress: bool | None = None, resume: bool = False, render: bool = True) -> RunOutputs:
@@ -101,12 +151,8 @@ def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: in
     bar = tqdm(total=len(seq), initial=first, unit="frame", desc=method.name,
                disable=None if progress is None else not progress)
     try:
-        for i, files in enumerate(seq.files[first:], start=first):
-            t0 = time.perf_counter()
-            depth, color = seq.read_depth(files), seq.read_color(files)
-            t1 = time.perf_counter()
-            obs = preprocess(depth, seq.intrinsics, files.index, i, preprocess_params, color)
-            t2 = time.perf_counter()
+        for i, files, depth, color, obs, waited, took in _read_ahead(seq, first, preprocess_params, method):
+            t0 = time.perf_counter() - sum(waited.values())
             enough = obs.num_valid >= preprocess_params.min_valid_pixels
             if enough or method.started:
                 record = method.process(obs) if enough else method.hold(obs)
@@ -118,7 +164,9 @@ def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: in
             if not claimed:              # this run is under way: the earlier one's outputs go
                 outputs.claim()
                 claimed = True
-            record.seconds = {"read": t1 - t0, "preprocess": t2 - t1, **record.seconds, "total": t3 - t0}
+            record.seconds = {"read": waited["read"], "preprocess": waited["preprocess"],
+                              "ahead": waited["ahead"], **record.seconds, "total": t3 - t0}
+            record.ahead_seconds = took
             record.rss_mb = round(rss_mb(), 1)
             outputs.add_frame(record)
             if _saves(i, len(seq), save_every) or len(outputs.frames) == 1:

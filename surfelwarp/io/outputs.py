@@ -36,6 +36,9 @@ class FrameRecord:
     tracked: bool = True          # False: too little depth; the model and the pose were kept
     model_bytes: int = 0          # memory the model holds at the end of the frame
     rss_mb: float = 0.0           # the process's resident memory at the end of the frame
+    # The seconds the frame's read-ahead work took by stage (read, preprocess, ahead), on the
+    # worker while the frame before was processed; `seconds` holds only what the frame waited.
+    ahead_seconds: dict[str, float] | None = None
     # The method's own typed counts (dataclasses: the tracker's, fusion's, the volume's), listed
     # in metrics.json beside the common fields; fields that are None are left out.
     details: tuple = ()
@@ -44,6 +47,10 @@ class FrameRecord:
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "details"}
         d["camera_to_world"] = np.asarray(self.camera_to_world, dtype=float).tolist()
         d["seconds"] = {k: round(float(v), 6) for k, v in self.seconds.items()}
+        if self.ahead_seconds is None:
+            del d["ahead_seconds"]
+        else:
+            d["ahead_seconds"] = {k: round(float(v), 6) for k, v in self.ahead_seconds.items()}
         d["energy"] = float(self.energy)
         for part in self.details:
             d |= {k: v for k, v in asdict(part).items() if v is not None}

@@ -41,6 +41,9 @@ class ObserveMethod:
     def started(self) -> bool:
         return self._table is not None
 
+    def ahead(self, obs: CameraObservation) -> None:
+        """Nothing to do before a frame."""
+
     def hold(self, obs: CameraObservation) -> FrameRecord:
         """The last frame's surfels stay the live model."""
         return FrameRecord(frame=obs.frame_index, reference_frame=obs.frame_index, camera_to_world=np.eye(4),

@@ -24,6 +24,11 @@ class Method(Protocol):
     def process(self, obs: CameraObservation) -> FrameRecord:
         """One frame, top to bottom; the frame's record."""
 
+    def ahead(self, obs: CameraObservation) -> None:
+        """Work on an observation that reads no model, done before its frame: the run calls it
+        on its read-ahead worker while the frame before is processed, with every observation in
+        order. What it finds must be what process() would find (checked there, or found again)."""
+
     def hold(self, obs: CameraObservation) -> FrameRecord:
         """A frame with too little depth to track: the model and the pose are kept; its record."""
 

@@ -52,12 +52,17 @@ def stage_table(metrics: dict) -> list[str]:
     head = "| stage | median ms |" + "".join(f" ms/100k surfels at {np.median(surfels[t]) / 1000:.0f}k |"
                                            for t in thirds)
     lines = [head, "|---|---:|" + "---:|" * len(thirds)]
-    for stage, s in list(seconds.items()) + [("total", totals)]:
+    ahead = stage_seconds(metrics, "ahead_seconds")[1]
+    rows = list(seconds.items()) + [("total", totals)] + [(f"{k}, read ahead", v) for k, v in ahead.items()]
+    for stage, s in rows:
         s = s if stage == "total" else s[later]
         if not s.any():
             continue
         per = "".join(f" {1e5 * np.median(1000 * s[t] / np.maximum(surfels[t], 1)):.1f} |" for t in thirds)
         lines.append(f"| {stage} | {1000 * np.median(s):.1f} |{per}")
+    if ahead:
+        lines += ["", "The stages above `total` are what a frame waited for; those read ahead ran on the read-ahead "
+                      "worker while the frame before was processed (`ahead`: the colour features)."]
     return lines
 
 
@@ -86,11 +91,16 @@ def colour_line(metrics: dict) -> str | None:
     features = seconds.get("features")
     if features is None or all(f.get("feature_matches") is None for f in metrics["frames"]):
         return None
+    features = features + seconds.get("ahead", 0.0)       # and the wait for what was found ahead
     share = float(np.median(features[later] / np.maximum(totals, 1e-12)))
     verdict = "within" if share <= COLOUR_TARGET_SHARE else "above"
+    early = stage_seconds(metrics, "ahead_seconds")[1].get("ahead")
+    early = "" if early is None else (f" Found ahead, on the read-ahead worker while the frame before ran (the "
+                                      f"features, their matches with the last frame and the keyframe): "
+                                      f"{1000 * np.median(early[later]):.0f} ms more.")
     return (f"Colour: the `features` stage (detection, matching, flow, refinement, checks) takes "
             f"{1000 * np.median(features[later]):.0f} ms, **{100 * share:.1f} % of a frame** (median; {verdict} "
-            f"the {100 * COLOUR_TARGET_SHARE:.0f} % target). Not counted: the feature term in the non-rigid "
+            f"the {100 * COLOUR_TARGET_SHARE:.0f} % target).{early} Not counted: the feature term in the non-rigid "
             f"solve and the colour pairs in rigid ICP.")
 
 

@@ -17,13 +17,14 @@ def load_metrics(run_dir: Path) -> dict:
     return json.loads((run_dir / "metrics.json").read_text())
 
 
-def stage_seconds(metrics: dict) -> tuple[list[int], dict[str, np.ndarray]]:
-    """Frame numbers and per-stage seconds (0 where a frame lacks the stage), first-seen order."""
+def stage_seconds(metrics: dict, key: str = "seconds") -> tuple[list[int], dict[str, np.ndarray]]:
+    """Frame numbers and per-stage seconds (0 where a frame lacks the stage), first-seen order;
+    key="ahead_seconds": the work done on the read-ahead worker before each frame."""
     frames = [f["frame"] for f in metrics["frames"]]
     names: list[str] = []
     for f in metrics["frames"]:
-        names += [k for k in f["seconds"] if k != "total" and k not in names]
-    return frames, {k: np.array([f["seconds"].get(k, 0.0) for f in metrics["frames"]]) for k in names}
+        names += [k for k in f.get(key) or {} if k != "total" and k not in names]
+    return frames, {k: np.array([(f.get(key) or {}).get(k, 0.0) for f in metrics["frames"]]) for k in names}
 
 
 def model_counts(metrics: dict) -> dict[str, np.ndarray]:
@@ -50,7 +51,7 @@ def evaluate_runs(out: Path, seq_dir: Path) -> dict[str, dict] | None:
     return results
 
 
-INPUT_STAGES = ("read", "preprocess")
+INPUT_STAGES = ("read", "preprocess", "ahead")      # what a frame waited for of its read-ahead work
 
 
 # Tracking: the shared rigid ICP, colour correspondences and Gauss-Newton, and each method's

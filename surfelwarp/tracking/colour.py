@@ -8,6 +8,9 @@ point. terms/features.py adds them to the non-rigid solve.
 """
 from __future__ import annotations
 
+import threading
+from dataclasses import dataclass
+
 import numpy as np
 from pykdtree.kdtree import KDTree
 
@@ -18,8 +21,40 @@ from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
                                           ModelView, checked_pairs, checked_points, combine, detect, flow_at,
                                           flow_pairs, grid_pixels, lift, locally_rigid, match_descriptors,
-                                          match_frames, near_prediction, on_model_map, refine,
-                                          solved_index, surface_depth)
+                                          match_frames, near_prediction, on_model_map, refine, solved_index,
+                                          surface_depth)
+
+
+@dataclass(frozen=True)
+class KeyframePairs:
+    """Reference features seen in the current frame: their index in the keyframe and their
+    point (current camera)."""
+    index: np.ndarray           # (n,) into the keyframe's features
+    points: np.ndarray          # (n, 3)
+
+
+def keyframe_pairs(keyframe: Keyframe, current: Keypoints, current_vertex: np.ndarray, current_valid: np.ndarray,
+                   params: FeatureParams) -> KeyframePairs:
+    """The reference features found in the current frame: descriptor matches, refined, lifted
+    with the current depth (`_keyframe_matches` checks them against the warp)."""
+    ia, ib = match_descriptors(keyframe.keypoints, current, params)
+    pixels, keep = refine(keyframe.keypoints.image, current.image, keyframe.keypoints.pixels[ia], current.pixels[ib],
+                          params, keyframe.depth)
+    ia, pixels = ia[keep], pixels[keep]
+    points, ok = lift(pixels, current_vertex, current_valid)
+    return KeyframePairs(ia[ok], points[ok])
+
+
+@dataclass(frozen=True)
+class FoundAhead:
+    """What `ColourMatcher.ahead` found for an observation before its frame: its features, its
+    matches with the observation before it (`last`) and with the keyframe it saw."""
+    obs: CameraObservation
+    keypoints: Keypoints
+    last: CameraObservation | None
+    last_matches: FeatureMatches | None
+    keyframe: Keyframe | None
+    keyframe_pairs: KeyframePairs | None
 
 
 class ColourMatcher:
@@ -32,12 +67,63 @@ class ColourMatcher:
         self._detected: tuple[CameraObservation, Keypoints] | None = None
         self._keyframe: Keyframe | None = None
         self._T_last = np.eye(4)
+        self._start_ahead()
+
+    def _start_ahead(self) -> None:
+        self._ahead_last: tuple[Keypoints, CameraObservation] | None = None   # the read-ahead worker's
+        self._found: list[FoundAhead] = []          # in the order `ahead` saw the observations
+        self._lock = threading.Lock()
+
+    def __getstate__(self) -> dict:
+        """A checkpoint's copy (io/checkpoint.py) leaves out what was found ahead: the resumed
+        run finds it again."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("_ahead_last", "_found", "_lock")}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._start_ahead()
 
     def _keypoints(self, obs: CameraObservation) -> Keypoints:
         """The observation's features, detected once."""
         if self._detected is None or self._detected[0] is not obs:
-            self._detected = obs, detect(obs.color, obs.valid, self.params)
+            with self._lock:
+                early = next((f.keypoints for f in self._found if f.obs is obs), None)
+            self._detected = obs, early if early is not None else detect(obs.color, obs.valid, self.params)
         return self._detected[1]
+
+    def ahead(self, obs: CameraObservation) -> None:
+        """The colour work on `obs` that reads no model, done before its frame: its features,
+        its matches with the observation given to `ahead` before it and with the keyframe. The
+        run calls it on its read-ahead worker while the frame before is processed; `matches`
+        takes what it found where the last observation and the keyframe are the ones it saw
+        (after a skipped frame or a new reference it finds them again), the same bytes as
+        finding them then."""
+        if obs.color is None:
+            self._ahead_last = None
+            return
+        p, last, keyframe = self.params, self._ahead_last, self._keyframe   # the keyframe read once
+        kp = detect(obs.color, obs.valid, p)
+        last_matches = pairs = None
+        if last is not None:
+            last_kp, last_obs = last
+            last_matches = match_frames(last_kp, kp, last_obs.vertex_map, last_obs.valid, obs.vertex_map, obs.valid,
+                                        np.eye(4), p)
+        if keyframe is not None:
+            pairs = keyframe_pairs(keyframe, kp, obs.vertex_map, obs.valid, p)
+        self._ahead_last = kp, obs
+        found = FoundAhead(obs, kp, None if last is None else last[1], last_matches, keyframe, pairs)
+        with self._lock:
+            self._found.append(found)
+
+    def _found_ahead(self, obs: CameraObservation) -> FoundAhead | None:
+        """What `ahead` found for obs (None: nothing), forgetting it and every earlier one."""
+        with self._lock:
+            at = next((i for i, f in enumerate(self._found) if f.obs is obs), None)
+            if at is None:
+                return None
+            found, self._found = self._found[at], self._found[at + 1:]
+        self._detected = obs, found.keypoints
+        return found
 
     def new_reference(self, obs: CameraObservation, T_camera_to_world: np.ndarray, ids: np.ndarray,
                       ref_position: np.ndarray) -> None:
@@ -69,16 +155,23 @@ class ColourMatcher:
             return None
         self._T_last = T_last
         p = self.params
+        early = self._found_ahead(obs)
         kp = self._keypoints(obs)
         previous, self._previous_features = self._previous_features, (kp, obs)
         if model is None:
             return None
-        found = [self._keyframe_matches(kp, obs, model, field)] if self._keyframe is not None else []
+        found = []
+        if self._keyframe is not None:
+            pairs = early.keyframe_pairs if early is not None and early.keyframe is self._keyframe else None
+            found.append(self._keyframe_matches(kp, obs, model, field, pairs))
         if previous is not None:
             last_kp, last = previous
-            T = np.eye(4)         # last to this camera, predicted
-            depth = (last.vertex_map, last.valid, obs.vertex_map, obs.valid, T, p)
-            found.append(self._on_model(match_frames(last_kp, kp, *depth), model, field, 1.0))
+            T = np.eye(4)         # last to this camera, predicted (as `ahead` predicts it)
+            if early is not None and early.last is last:
+                last_matches = early.last_matches
+            else:
+                last_matches = match_frames(last_kp, kp, last.vertex_map, last.valid, obs.vertex_map, obs.valid, T, p)
+            found.append(self._on_model(last_matches, model, field, 1.0))
             if p.flow:
                 found.append(self._flow_matches(last, obs, model, field, T))
         if not found:
@@ -86,17 +179,17 @@ class ColourMatcher:
         return combine(*found)
 
     def _keyframe_matches(self, kp: Keypoints, obs: CameraObservation, model: ModelView,
-                          field: WarpField) -> AnchoredMatches:
-        """Reference features in `obs`, checked against where the last frame's warp takes them."""
+                          field: WarpField, pairs: KeyframePairs | None) -> AnchoredMatches:
+        """Reference features in `obs` (`pairs`, found ahead; None: found now), checked against
+        where the last frame's warp takes them."""
         p, kf = self.params, self._keyframe
         if len(model.ids) == 0:
             return combine()
-        ia, ib = match_descriptors(kf.keypoints, kp, p)
-        pixels, keep = refine(kf.keypoints.image, kp.image, kf.keypoints.pixels[ia], kp.pixels[ib], p, kf.depth)
-        ia, ib, pixels = ia[keep], ib[keep], pixels[keep]
-        q, ok = lift(pixels, obs.vertex_map, obs.valid)
+        if pairs is None:
+            pairs = keyframe_pairs(kf, kp, obs.vertex_map, obs.valid, p)
+        ia, q = pairs.index, pairs.points
         index = np.minimum(np.searchsorted(model.ids, kf.ids[ia]), len(model.ids) - 1)
-        ok &= model.ids[index] == kf.ids[ia]          # surfels removed since are gone
+        ok = model.ids[index] == kf.ids[ia]          # surfels removed since are gone
         ia, q, index = ia[ok], q[ok], index[ok]
         predicted, _ = warp(kf.points[ia], None, model.knn[index], model.weights[index], field)
         # The solve's surfels are those the model map shows, one a pixel: the feature goes on

@@ -246,6 +246,12 @@ class Tracker:
         need not draw the model's colour otherwise."""
         return self.params.nonrigid.feature_weight > 0
 
+    def ahead(self, obs: CameraObservation) -> None:
+        """The colour work on `obs` that reads no model (colour.py), done before its frame on the
+        run's read-ahead worker."""
+        if self.uses_features:
+            self.colour.ahead(obs)
+
     def features(self, obs: CameraObservation, model: ModelView | None = None,
                  field: WarpField | None = None) -> AnchoredMatches | None:
         """Colour correspondences of `obs` on the solved surfels (colour.py), predicted at the

@@ -108,6 +108,11 @@ class DynamicFusionMethod:
     def started(self) -> bool:
         return self.voxels is not None
 
+    def ahead(self, obs: CameraObservation) -> None:
+        """The next frame's work that reads no model (its colour features), done while this
+        frame is processed: run.py's read-ahead worker calls it."""
+        self.tracker.ahead(obs)
+
     def hold(self, obs: CameraObservation) -> FrameRecord:
         """Too little depth: no tracking, no fusion; the volume, warp field and pose are kept."""
         return replace(self._record(obs, StageTimer()), tracked=False)

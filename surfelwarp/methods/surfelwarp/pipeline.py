@@ -202,6 +202,11 @@ class SurfelWarpMethod:
                                  added.candidates, added.rejected_weight, added.rejected_compressive,
                                  self.field.num_nodes - first_new)
 
+    def ahead(self, obs: CameraObservation) -> None:
+        """The next frame's work that reads no model (its colour features), done while this
+        frame is processed: run.py's read-ahead worker calls it."""
+        self.tracker.ahead(obs)
+
     def hold(self, obs: CameraObservation) -> FrameRecord:
         """Too little depth: no tracking, no fusion; the model, warp field and pose are kept."""
         return FrameRecord(frame=obs.frame_index, reference_frame=self.reference_frame,

@@ -59,3 +59,58 @@ def test_colour_sees_a_slide_depth_cannot(gl, feature_weight, monkeypatch):
         err = np.linalg.norm(np.median(moved, axis=0) - expected)
         assert err < 0.5 * 1.0 / intr.fx, (np.median(moved, axis=0), expected)    # half a pixel at 1 m
         assert record.details[0].feature_matches > 100
+
+
+def test_colour_found_ahead_is_what_the_frame_finds(gl, monkeypatch):
+    """`ahead` on a worker while the frame before is processed (as run.py calls it) leaves the
+    model the same to the bit as finding everything in the frame, also where what it found is
+    stale: a new keyframe after it ran (frame 3) and a frame left out before the next (frame 4)."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from surfelwarp.tracking import colour
+
+    intr, obs = sliding_plane(6)
+    calls = []
+    real = colour.match_frames
+    monkeypatch.setattr(colour, "match_frames",     # counted when a frame matches, not `ahead`
+                        lambda *a: calls.append(threading.current_thread() is threading.main_thread()) or real(*a))
+
+    def run(early: bool):
+        params = SurfelWarpParams()
+        tracking = replace(params.tracking, camera="static",
+                           nonrigid=replace(params.tracking.nonrigid, feature_weight=100.0))
+        method = SurfelWarpMethod(intr, replace(params, tracking=tracking))
+        calls.clear()
+        with ThreadPoolExecutor(1) as worker:
+            def ahead(*frames):
+                if early:
+                    for i in frames:
+                        worker.submit(method.ahead, obs[i]).result()
+
+            ahead(0)
+            records = [method.process(obs[0])]
+            ahead(1)
+            records.append(method.process(obs[1]))
+            ahead(2)
+            coming = worker.submit(method.ahead, obs[3]) if early else None
+            records.append(method.process(obs[2]))     # frame 3's features found meanwhile
+            if coming is not None:
+                coming.result()
+            # A new keyframe, frame 1's features (not the last frame's, whose matches would be the
+            # same): frame 3's pairs with the old one go.
+            method.tracker.new_reference(obs[1], method.model.ids, method.model.ref_position)
+            records.append(method.process(obs[3]))
+            ahead(4, 5)                        # frame 4 left out: frame 5's matches with it go
+            records.append(method.process(obs[5]))
+        return method.model, [(r.details[0].feature_matches, r.energy) for r in records[1:]], sum(calls)
+
+    model, records, found_in_frames = run(early=False)
+    model_ahead, records_ahead, found_in_frames_ahead = run(early=True)
+    assert min(count for count, _ in records) > 100
+    assert records_ahead == records                    # matches and energies of frames 1, 2, 3, 5
+    for name in ("live_position", "live_normal", "ref_position", "ids"):
+        assert getattr(model_ahead, name).tobytes() == getattr(model, name).tobytes(), name
+    # every processed frame after the first matched its last one in the frame (4), and with
+    # `ahead` only frame 5 did (its last observation, frame 3, was not the one `ahead` saw).
+    assert (found_in_frames, found_in_frames_ahead) == (4, 1)
