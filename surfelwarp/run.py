@@ -83,7 +83,8 @@ def _finish(outputs: RunOutputs, method: Method, render: bool) -> None:
 def _lowest_priority() -> None:
     """The calling thread at the lowest CPU priority (Linux, where a thread has its own nice
     value; elsewhere nothing): it gets a core the frame leaves idle, not time from the frame's
-    own threads (at normal priority the read-ahead slowed twist-limb's feature stage ~10 %)."""
+    own threads (at normal priority, detection on the worker slowed the frame's own matching on
+    twist-limb by half: match_frames 81 -> 120 ms)."""
     if sys.platform.startswith("linux"):
         try:
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
@@ -110,9 +111,9 @@ def _read_ahead(seq: Sequence, first: int, params: PreprocessParams, method: Met
     todo = list(enumerate(seq.files[first:], start=first))
     pool = ThreadPoolExecutor(1, thread_name_prefix="read-ahead", initializer=_lowest_priority)
     try:
+        t0 = time.perf_counter()
         coming = pool.submit(job, *todo[0]) if todo else None
         for k, (position, files) in enumerate(todo):
-            t0 = time.perf_counter()
             depth, color, obs, took = coming.result()
             left = time.perf_counter() - t0
             coming = pool.submit(job, *todo[k + 1]) if k + 1 < len(todo) else None
@@ -122,6 +123,7 @@ def _read_ahead(seq: Sequence, first: int, params: PreprocessParams, method: Met
                 left -= waited[stage]
             waited["read"] += left                       # the hand-over itself
             yield position, files, depth, color, obs, {s: waited[s] for s in took}, took
+            t0 = time.perf_counter()                     # the next frame's turn
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
@@ -150,8 +152,9 @@ def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: in
     # disable=None: tqdm shows the bar only when stderr is a terminal.
     bar = tqdm(total=len(seq), initial=first, unit="frame", desc=method.name,
                disable=None if progress is None else not progress)
+    frames = _read_ahead(seq, first, preprocess_params, method)
     try:
-        for i, files, depth, color, obs, waited, took in _read_ahead(seq, first, preprocess_params, method):
+        for i, files, depth, color, obs, waited, took in frames:
             t0 = time.perf_counter() - sum(waited.values())
             enough = obs.num_valid >= preprocess_params.min_valid_pixels
             if enough or method.started:
@@ -191,6 +194,7 @@ def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: in
         outputs.error = str(exc)
         raise
     finally:
+        frames.close()                   # the worker stops (after the frame it is reading)
         bar.close()
         if outputs.frames and claimed:   # never replace an earlier run's metrics
             try:

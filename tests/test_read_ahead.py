@@ -38,9 +38,12 @@ def test_every_frame_in_order_read_ahead_on_a_low_priority_worker(tmp_path):
     if sys.platform.startswith("linux"):
         assert {c[2] for c in method.calls} == {19}
     assert os.getpriority(os.PRIO_PROCESS, 0) < 19              # the frame's own thread keeps its priority
-    for *_, waited, took in got:
+    for *_, waited, took in got:      # the tail of the job, its last stages first
         assert list(waited) == list(took) == ["read", "preprocess", "ahead"]
-        assert all(0.0 <= waited[k] <= took[k] + 1e-3 for k in took)
+        assert min(waited.values()) >= 0.0
+        assert waited["ahead"] <= took["ahead"] and waited["preprocess"] <= took["preprocess"]
+        assert waited["preprocess"] == 0.0 or waited["ahead"] == took["ahead"]
+        assert waited["read"] == 0.0 or waited["preprocess"] == took["preprocess"]
     # the first frame waited for its whole job: nothing ran before it
     first_waited, first_took = got[0][5], got[0][6]
     assert sum(first_waited.values()) >= sum(first_took.values())

@@ -112,8 +112,8 @@ class ColourMatcher:
             pairs = keyframe_pairs(keyframe, kp, obs.vertex_map, obs.valid, p)
         self._ahead_last = kp, obs
         found = FoundAhead(obs, kp, None if last is None else last[1], last_matches, keyframe, pairs)
-        with self._lock:
-            self._found.append(found)
+        with self._lock:      # the run is one frame ahead: the frame's own and this one (not skipped frames')
+            self._found = self._found[-1:] + [found]
 
     def _found_ahead(self, obs: CameraObservation) -> FoundAhead | None:
         """What `ahead` found for obs (None: nothing), forgetting it and every earlier one."""
