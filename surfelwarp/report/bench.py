@@ -62,7 +62,7 @@ def stage_table(metrics: dict) -> list[str]:
         lines.append(f"| {stage} | {1000 * np.median(s):.1f} |{per}")
     if ahead:
         lines += ["", "The stages above `total` are what a frame waited for; those read ahead ran on the read-ahead "
-                      "worker while the frame before was processed (`ahead`: the colour features)."]
+                      "worker while the frame before was processed (`ahead`: free space and colour features)."]
     return lines
 
 

@@ -150,21 +150,26 @@ class Tracker:
         self._camera_moves = params.camera == "moving"  # this frame: still surface to tell its motion
         self._lu_fallbacks = 0                          # this frame's, over every solve
         self._free_space: tuple[CameraObservation, FreeSpace] | None = None
+        self._spaces_ahead: list[tuple[CameraObservation, FreeSpace]] = []   # `ahead`'s last two
         self.colour = ColourMatcher(intrinsics, params.features)
         self._feature_count: int | None = None
 
     def __getstate__(self) -> dict:
-        """A checkpoint's copy (io/checkpoint.py) leaves out the frame's free-space cache: half
-        its size, and the next frame builds its own."""
-        return self.__dict__ | {"_free_space": None}
+        """A checkpoint's copy (io/checkpoint.py) leaves out the free-space caches: half its
+        size, and the next frame builds its own."""
+        return self.__dict__ | {"_free_space": None, "_spaces_ahead": []}
 
     def free_space(self, obs: CameraObservation, T_camera_to_world: np.ndarray) -> FreeSpace:
         """The observation's free space seen from T_camera_to_world, built once per observation
-        for the frame's solves and the model's carving."""
+        (by `ahead`, or on the first call) for the frame's solves and the model's carving."""
         if self._free_space is None or self._free_space[0] is not obs:
-            self._free_space = obs, FreeSpace(obs.depth_m, self.intrinsics, T_camera_to_world,
-                                              self.params.nonrigid.silhouette, obs.beyond)
+            early = next((space for seen, space in self._spaces_ahead if seen is obs), None)
+            self._free_space = obs, early if early is not None else self._build_free_space(obs)
         return self._free_space[1].moved_to(T_camera_to_world)
+
+    def _build_free_space(self, obs: CameraObservation) -> FreeSpace:
+        """At the camera (the pose only places it: free_space moves it to the frame's)."""
+        return FreeSpace(obs.depth_m, self.intrinsics, np.eye(4), self.params.nonrigid.silhouette, obs.beyond)
 
     def stillness(self, knn: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """(N,) how still each point is (0-1), given its nodes and weights (N, k) in the last
@@ -247,8 +252,10 @@ class Tracker:
         return self.params.nonrigid.feature_weight > 0
 
     def ahead(self, obs: CameraObservation) -> None:
-        """The colour work on `obs` that reads no model (colour.py), done before its frame on the
-        run's read-ahead worker."""
+        """The work on `obs` that reads no model, done before its frame on the run's read-ahead
+        worker: its free space and its colour work (colour.py)."""
+        # A new list, never one changed in place: the frame reads the last one whole.
+        self._spaces_ahead = self._spaces_ahead[-1:] + [(obs, self._build_free_space(obs))]
         if self.uses_features:
             self.colour.ahead(obs)
 

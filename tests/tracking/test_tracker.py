@@ -16,6 +16,7 @@ from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.preprocess import preprocess
 from surfelwarp.tracking.gauss_newton import NonRigidResult
 from surfelwarp.tracking.features import AnchoredMatches
+from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.tracker import SurfelSet, Tracker, TrackingParams, factor_rigid_motion
 
 from conftest import shared_data, sphere_depth_mm
@@ -153,3 +154,27 @@ def test_far_pairs_lead_the_solve(lead_motion_m):
         assert error.mean() < 0.0005 and np.percentile(error, 99) < 0.001
     else:
         assert error.mean() > 0.03
+
+
+def test_free_space_built_ahead_is_the_observations_own():
+    """`ahead` builds an observation's free space before its frame; the frame gets the one of
+    its own observation (of the last two seen), at its pose, as if built then."""
+    intr = Intrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
+    a, b, c = (preprocess(sphere_depth_mm(i, (160, 120), 150.0) / 1000.0, intr, i, i) for i in (0, 6, 12))
+    tracker = Tracker(intr)
+    T = se3_exp(np.array([0.02, -0.01, 0.03, 0.05, 0.0, -0.02]))
+    for obs in (a, b, c):
+        tracker.ahead(obs)
+    assert [seen for seen, _ in tracker._spaces_ahead] == [b, c]          # the last two only
+    for obs in (b, c):
+        got = tracker.free_space(obs, T)
+        want = FreeSpace(obs.depth_m, intr, T, tracker.params.nonrigid.silhouette, obs.beyond)
+        for name in ("depth", "empty", "judged", "_reach", "R_wc", "t_wc", "centre"):
+            assert np.array_equal(getattr(got, name), getattr(want, name)), name
+    assert not np.array_equal(tracker.free_space(b, T).depth, tracker.free_space(c, T).depth)
+    rng = np.random.default_rng(0)
+    camera = rng.uniform([-0.3, -0.2, 0.4], [0.3, 0.2, 2.0], (300, 3))     # in and behind the view's surfaces
+    world = np.ascontiguousarray(transform_points(T, camera).T)
+    got = tracker.free_space(c, T).residuals(world)[0]
+    want = FreeSpace(c.depth_m, intr, T, tracker.params.nonrigid.silhouette, c.beyond).residuals(world)[0]
+    assert np.array_equal(got, want) and (got > 0).sum() > 30

@@ -203,8 +203,8 @@ class SurfelWarpMethod:
                                  self.field.num_nodes - first_new)
 
     def ahead(self, obs: CameraObservation) -> None:
-        """The next frame's work that reads no model (its colour features), done while this
-        frame is processed: run.py's read-ahead worker calls it."""
+        """The next frame's work that reads no model (its free space and colour features), done
+        while this frame is processed: run.py's read-ahead worker calls it."""
         self.tracker.ahead(obs)
 
     def hold(self, obs: CameraObservation) -> FrameRecord:

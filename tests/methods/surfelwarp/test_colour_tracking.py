@@ -62,19 +62,21 @@ def test_colour_sees_a_slide_depth_cannot(gl, feature_weight, monkeypatch):
 
 
 def test_colour_found_ahead_is_what_the_frame_finds(gl, monkeypatch):
-    """`ahead` on a worker while the frame before is processed (as run.py calls it) leaves the
-    model the same to the bit as finding everything in the frame, also where what it found is
+    """`ahead` on a worker while the frame before is processed (as run.py calls it: colour work
+    and free space) leaves the model the same to the bit as doing everything in the frame, also where what it found is
     stale: a new keyframe after it ran (frame 3) and a frame left out before the next (frame 4)."""
     import threading
     from concurrent.futures import ThreadPoolExecutor
 
-    from surfelwarp.tracking import colour
+    from surfelwarp.tracking import colour, tracker
 
     intr, obs = sliding_plane(6)
-    calls = []
-    real = colour.match_frames
+    calls, spaces = [], []
+    real, real_space = colour.match_frames, tracker.FreeSpace
+    in_frame = lambda: threading.current_thread() is threading.main_thread()    # noqa: E731
     monkeypatch.setattr(colour, "match_frames",     # counted when a frame matches, not `ahead`
-                        lambda *a: calls.append(threading.current_thread() is threading.main_thread()) or real(*a))
+                        lambda *a: calls.append(in_frame()) or real(*a))
+    monkeypatch.setattr(tracker, "FreeSpace", lambda *a: spaces.append(in_frame()) or real_space(*a))
 
     def run(early: bool):
         params = SurfelWarpParams()
@@ -82,6 +84,7 @@ def test_colour_found_ahead_is_what_the_frame_finds(gl, monkeypatch):
                            nonrigid=replace(params.tracking.nonrigid, feature_weight=100.0))
         method = SurfelWarpMethod(intr, replace(params, tracking=tracking))
         calls.clear()
+        spaces.clear()
         with ThreadPoolExecutor(1) as worker:
             def ahead(*frames):
                 if early:
@@ -106,7 +109,7 @@ def test_colour_found_ahead_is_what_the_frame_finds(gl, monkeypatch):
                 ahead(4, 4, 5)
                 assert [f.obs.frame_index for f in method.tracker.colour._found] == [4, 5]
             records.append(method.process(obs[5]))
-        return method.model, [(r.details[0].feature_matches, r.energy) for r in records[1:]], sum(calls)
+        return method.model, [(r.details[0].feature_matches, r.energy) for r in records[1:]], (sum(calls), sum(spaces))
 
     model, records, found_in_frames = run(early=False)
     model_ahead, records_ahead, found_in_frames_ahead = run(early=True)
@@ -114,6 +117,7 @@ def test_colour_found_ahead_is_what_the_frame_finds(gl, monkeypatch):
     assert records_ahead == records                    # matches and energies of frames 1, 2, 3, 5
     for name in ("live_position", "live_normal", "ref_position", "ids"):
         assert getattr(model_ahead, name).tobytes() == getattr(model, name).tobytes(), name
-    # every processed frame after the first matched its last one in the frame (4), and with
-    # `ahead` only frame 5 did (its last observation, frame 3, was not the one `ahead` saw).
-    assert (found_in_frames, found_in_frames_ahead) == (4, 1)
+    # every processed frame after the first matched its last one and built its free space in
+    # the frame (4), and with `ahead` only frame 5 matched (its last observation, frame 3, was
+    # not the one `ahead` saw) and none built its free space.
+    assert (found_in_frames, found_in_frames_ahead) == ((4, 4), (1, 0))
