@@ -95,9 +95,9 @@ def colour_line(metrics: dict) -> str | None:
     share = float(np.median(features[later] / np.maximum(totals, 1e-12)))
     verdict = "within" if share <= COLOUR_TARGET_SHARE else "above"
     early = stage_seconds(metrics, "ahead_seconds")[1].get("ahead")
-    early = "" if early is None else (f" Found ahead, on the read-ahead worker while the frame before ran (the "
-                                      f"features, their matches with the last frame and the keyframe): "
-                                      f"{1000 * np.median(early[later]):.0f} ms more.")
+    early = "" if early is None else (f" Done ahead, on the read-ahead worker while the frame before ran (the "
+                                      f"features, their matches with the last frame and the keyframe, and the "
+                                      f"free space): {1000 * np.median(early[later]):.0f} ms more.")
     return (f"Colour: the `features` stage (detection, matching, flow, refinement, checks) takes "
             f"{1000 * np.median(features[later]):.0f} ms, **{100 * share:.1f} % of a frame** (median; {verdict} "
             f"the {100 * COLOUR_TARGET_SHARE:.0f} % target).{early} Not counted: the feature term in the non-rigid "
