@@ -63,8 +63,9 @@ def test_colour_sees_a_slide_depth_cannot(gl, feature_weight, monkeypatch):
 
 def test_colour_found_ahead_is_what_the_frame_finds(gl, monkeypatch):
     """`ahead` on a worker while the frame before is processed (as run.py calls it: colour work
-    and free space) leaves the model the same to the bit as doing everything in the frame, also where what it found is
-    stale: a new keyframe after it ran (frame 3) and a frame left out before the next (frame 4)."""
+    and free space) leaves the model the same to the bit as doing everything in the frame, also
+    where what it found is stale: a new keyframe after it ran (frame 3) and a frame left out
+    before the next (frame 4)."""
     import threading
     from concurrent.futures import ThreadPoolExecutor
 
