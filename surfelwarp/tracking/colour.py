@@ -8,7 +8,6 @@ point. terms/features.py adds them to the non-rigid solve.
 """
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +17,7 @@ from surfelwarp.deform.warp_field import WarpField, inverse_warp, warp
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import invert, transform_points
 from surfelwarp.preprocess import CameraObservation
+from surfelwarp.tracking.ahead import FoundAhead
 from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
                                           ModelView, checked_pairs, checked_points, combine, detect, flow_at,
                                           flow_pairs, grid_pixels, lift, locally_rigid, match_descriptors,
@@ -46,10 +46,9 @@ def keyframe_pairs(keyframe: Keyframe, current: Keypoints, current_vertex: np.nd
 
 
 @dataclass(frozen=True)
-class FoundAhead:
+class EarlyColour:
     """What `ColourMatcher.ahead` found for an observation before its frame: its features, its
     matches with the observation before it (`last`) and with the keyframe it saw."""
-    obs: CameraObservation
     keypoints: Keypoints
     last: CameraObservation | None
     last_matches: FeatureMatches | None
@@ -67,28 +66,19 @@ class ColourMatcher:
         self._detected: tuple[CameraObservation, Keypoints] | None = None
         self._keyframe: Keyframe | None = None
         self._T_last = np.eye(4)
-        self._start_ahead()
-
-    def _start_ahead(self) -> None:
         self._ahead_last: tuple[Keypoints, CameraObservation] | None = None   # the read-ahead worker's
-        self._found: list[FoundAhead] = []          # in the order `ahead` saw the observations
-        self._lock = threading.Lock()
+        self._found = FoundAhead()                  # EarlyColour by observation
 
     def __getstate__(self) -> dict:
         """A checkpoint's copy (io/checkpoint.py) leaves out what was found ahead: the resumed
         run finds it again."""
-        return {k: v for k, v in self.__dict__.items() if k not in ("_ahead_last", "_found", "_lock")}
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-        self._start_ahead()
+        return self.__dict__ | {"_ahead_last": None}
 
     def _keypoints(self, obs: CameraObservation) -> Keypoints:
         """The observation's features, detected once."""
         if self._detected is None or self._detected[0] is not obs:
-            with self._lock:
-                early = next((f.keypoints for f in self._found if f.obs is obs), None)
-            self._detected = obs, early if early is not None else detect(obs.color, obs.valid, self.params)
+            early = self._found.get(obs)
+            self._detected = obs, early.keypoints if early is not None else detect(obs.color, obs.valid, self.params)
         return self._detected[1]
 
     def ahead(self, obs: CameraObservation) -> None:
@@ -111,19 +101,7 @@ class ColourMatcher:
         if keyframe is not None:
             pairs = keyframe_pairs(keyframe, kp, obs.vertex_map, obs.valid, p)
         self._ahead_last = kp, obs
-        found = FoundAhead(obs, kp, None if last is None else last[1], last_matches, keyframe, pairs)
-        with self._lock:      # the run is one frame ahead: the frame's own and this one (not skipped frames')
-            self._found = self._found[-1:] + [found]
-
-    def _found_ahead(self, obs: CameraObservation) -> FoundAhead | None:
-        """What `ahead` found for obs (None: nothing), forgetting it and every earlier one."""
-        with self._lock:
-            at = next((i for i, f in enumerate(self._found) if f.obs is obs), None)
-            if at is None:
-                return None
-            found, self._found = self._found[at], self._found[at + 1:]
-        self._detected = obs, found.keypoints
-        return found
+        self._found.put(obs, EarlyColour(kp, None if last is None else last[1], last_matches, keyframe, pairs))
 
     def new_reference(self, obs: CameraObservation, T_camera_to_world: np.ndarray, ids: np.ndarray,
                       ref_position: np.ndarray) -> None:
@@ -155,7 +133,7 @@ class ColourMatcher:
             return None
         self._T_last = T_last
         p = self.params
-        early = self._found_ahead(obs)
+        early = self._found.get(obs)
         kp = self._keypoints(obs)
         previous, self._previous_features = self._previous_features, (kp, obs)
         if model is None:

@@ -22,6 +22,7 @@ from surfelwarp.tracking.anchors import AnchorParams, NodeAnchors, follow_motion
 from surfelwarp.tracking.degeneracy import HeldDirections
 from surfelwarp.tracking.colour import ColourMatcher
 from surfelwarp.tracking.features import AnchoredMatches, FeatureParams, ModelView
+from surfelwarp.tracking.ahead import FoundAhead
 from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.gauss_newton import NonRigidParams, NonRigidResult, solve_nonrigid
 from surfelwarp.tracking.rigid_icp import PointPairs, RigidParams, RigidResult, rigid_icp
@@ -150,20 +151,20 @@ class Tracker:
         self._camera_moves = params.camera == "moving"  # this frame: still surface to tell its motion
         self._lu_fallbacks = 0                          # this frame's, over every solve
         self._free_space: tuple[CameraObservation, FreeSpace] | None = None
-        self._spaces_ahead: list[tuple[CameraObservation, FreeSpace]] = []   # `ahead`'s last two
+        self._spaces_ahead = FoundAhead()          # FreeSpace by observation, built by `ahead`
         self.colour = ColourMatcher(intrinsics, params.features)
         self._feature_count: int | None = None
 
     def __getstate__(self) -> dict:
         """A checkpoint's copy (io/checkpoint.py) leaves out the free-space caches: half its
         size, and the next frame builds its own."""
-        return self.__dict__ | {"_free_space": None, "_spaces_ahead": []}
+        return self.__dict__ | {"_free_space": None}
 
     def free_space(self, obs: CameraObservation, T_camera_to_world: np.ndarray) -> FreeSpace:
         """The observation's free space seen from T_camera_to_world, built once per observation
         (by `ahead`, or on the first call) for the frame's solves and the model's carving."""
         if self._free_space is None or self._free_space[0] is not obs:
-            early = next((space for seen, space in self._spaces_ahead if seen is obs), None)
+            early = self._spaces_ahead.get(obs)
             self._free_space = obs, early if early is not None else self._build_free_space(obs)
         return self._free_space[1].moved_to(T_camera_to_world)
 
@@ -254,8 +255,7 @@ class Tracker:
     def ahead(self, obs: CameraObservation) -> None:
         """The work on `obs` that reads no model, done before its frame on the run's read-ahead
         worker: its free space and its colour work (colour.py)."""
-        # A new list, never one changed in place: the frame reads the last one whole.
-        self._spaces_ahead = self._spaces_ahead[-1:] + [(obs, self._build_free_space(obs))]
+        self._spaces_ahead.put(obs, self._build_free_space(obs))
         if self.uses_features:
             self.colour.ahead(obs)
 

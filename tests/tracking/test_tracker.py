@@ -165,7 +165,7 @@ def test_free_space_built_ahead_is_the_observations_own():
     T = se3_exp(np.array([0.02, -0.01, 0.03, 0.05, 0.0, -0.02]))
     for obs in (a, b, c):
         tracker.ahead(obs)
-    assert [seen for seen, _ in tracker._spaces_ahead] == [b, c]          # the last two only
+    assert tracker._spaces_ahead.observations() == [b, c]          # the last two only
     for obs in (b, c):
         got = tracker.free_space(obs, T)
         want = FreeSpace(obs.depth_m, intr, T, tracker.params.nonrigid.silhouette, obs.beyond)

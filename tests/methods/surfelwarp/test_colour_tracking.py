@@ -108,7 +108,7 @@ def test_colour_found_ahead_is_what_the_frame_finds(gl, monkeypatch):
             ahead(4, 5)                        # frame 4 left out: frame 5's matches with it go
             if early:                          # kept: the last two only (not every frame left out)
                 ahead(4, 4, 5)
-                assert [f.obs.frame_index for f in method.tracker.colour._found] == [4, 5]
+                assert [o.frame_index for o in method.tracker.colour._found.observations()] == [4, 5]
             records.append(method.process(obs[5]))
         return method.model, [(r.details[0].feature_matches, r.energy) for r in records[1:]], (sum(calls), sum(spaces))
 
