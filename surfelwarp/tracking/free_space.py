@@ -40,6 +40,7 @@ import numba
 import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.tracking.features import bounding_box
 
 
 @dataclass(frozen=True)
@@ -71,18 +72,14 @@ def _holes(invalid: np.ndarray, hole_px: int) -> np.ndarray:
     image's edge replicated), opened only over the box of valid pixels and 2 hole_px + 2 about
     it: farther out every pixel is invalid and its own disc fits (a hand's frame, valid on a
     sixteenth of the image: 3.5 -> 0.7 ms)."""
-    valid = ~invalid
-    rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
+    rows, cols = bounding_box(~invalid, 2 * hole_px + 2)
     empty = np.ones(invalid.shape, bool)
-    if len(rows) == 0:
+    if rows.stop == rows.start:
         return empty
-    h, w = invalid.shape
-    e = 2 * hole_px + 2
-    r0, r1, c0, c1 = max(rows[0] - e, 0), min(rows[-1] + e + 1, h), max(cols[0] - e, 0), min(cols[-1] + e + 1, w)
     k = 2 * hole_px + 1
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-    empty[r0:r1, c0:c1] = cv2.morphologyEx(invalid[r0:r1, c0:c1].astype(np.uint8), cv2.MORPH_OPEN, disc,
-                                           borderType=cv2.BORDER_REPLICATE) > 0
+    empty[rows, cols] = cv2.morphologyEx(invalid[rows, cols].astype(np.uint8), cv2.MORPH_OPEN, disc,
+                                         borderType=cv2.BORDER_REPLICATE) > 0
     return empty
 
 
