@@ -4,12 +4,14 @@ import contextlib
 import errno
 import io
 import json
+import pickle
 import random
 import signal
 import subprocess
 import sys
 import time
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -113,6 +115,13 @@ def test_resume_past_max_frames_and_refusals(touch, touch_run, tmp_path):
     code, err = run_here("run", touch, "--out", out, "--save-every", 4, "--resume")
     assert_clean_error(code, err, "save_every")
     assert files_of(out) == before
+    # a checkpoint of another format (a method whose state had other fields): refused, untouched
+    state = pickle.loads((out / "checkpoint.pkl").read_bytes())
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "checkpoint.pkl").write_bytes(pickle.dumps(replace(state, format=state.format - 1)))
+    code, err = run_here("run", touch, "--out", old, "--save-every", 5, "--resume")
+    assert_clean_error(code, err, "checkpoint.pkl", "another version of surfelwarp")
     # more frames: goes on to the end, as if run whole
     assert run_here("run", touch, "--out", out, "--save-every", 5, "--resume")[0] == 0
     assert_same_run(touch_run, out)

@@ -21,7 +21,7 @@ from pathlib import Path
 from surfelwarp.errors import InputError
 from surfelwarp.io.ply import write_atomic_with
 
-FORMAT = 1
+FORMAT = 2     # 2: the tracker keeps what the read-ahead found (a format-1 method lacks it)
 NAME = "checkpoint.pkl"
 
 
