@@ -15,38 +15,57 @@ def unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
+TILE_PX = 16      # the reference's pixels are taken a tile at a time, with the disks near it
+
+
 def reference(p, n, r, intr, rim_px=0.5, min_cos=0.1):
     """Per pixel centre ray: the nearest disk hit (float64). Also a mask of unreliable pixels: near
     the rim of a disk at or in front of the winner, nearly edge-on there, or a depth near-tie; and
-    a mask of pixels whose ray meets two or more disks."""
+    a mask of pixels whose ray meets two or more disks. A disk is tried on the pixels within
+    `reach` of its projected centre, 5x its projected radius and 15 px more: far beyond what it
+    covers (the same hits as trying every disk on every pixel, on every input here), and no
+    grazing ray far from a disk makes a pixel unsure (all pairs: 30 s for 4000 disks)."""
     p, n, r = (np.asarray(a, np.float64) for a in (p, n, r))
-    u, v = np.meshgrid(np.arange(intr.width), np.arange(intr.height))
-    rays_x = ((u - intr.cx) / intr.fx).reshape(-1, 1)
-    rays_y = ((v - intr.cy) / intr.fy).reshape(-1, 1)
-    out = [], [], []
-    for rows in np.array_split(np.arange(len(rays_x)), 16):   # chunks keep temporaries small
-        dx, dy = rays_x[rows], rays_y[rows]
-        dd = dx * dx + dy * dy + 1.0
-        dn = dx * n[:, 0] + dy * n[:, 1] + n[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (p * n).sum(1) / dn                      # (pixels, disks) intersection depth
-            dist2 = t * t * dd - 2 * t * (dx * p[:, 0] + dy * p[:, 1] + p[:, 2]) + (p * p).sum(1)
-            dist = np.sqrt(np.maximum(dist2, 0.0))
-            hit = (t > 0) & (dist <= r)
-            depth = np.where(hit, t, np.inf)
-            two = np.argsort(depth, axis=1)[:, :2]
-            best = np.take_along_axis(depth, two, 1)
-            cos = np.abs(dn) / np.sqrt(dd)
-            footprint = t / intr.focal_px / np.maximum(cos, 1e-6)   # metres per pixel on the disk
-            relevant = (t > 0) & (t <= best[:, :1] + 1e-6)
-            unsure = (relevant & ((np.abs(dist - r) < rim_px * footprint)
-                                  | (hit & (cos < min_cos)))).any(1)
-            unsure |= best[:, 1] - best[:, 0] < 1e-5
-        out[0].append(np.where(np.isfinite(best[:, 0]), two[:, 0], -1))
-        out[1].append(unsure)
-        out[2].append(hit.sum(1) >= 2)
+    z = p[:, 2]
+    centre = np.stack([intr.fx * p[:, 0] / z + intr.cx, intr.fy * p[:, 1] / z + intr.cy], 1)
+    reach = 5 * r * intr.focal_px / np.maximum(z - r, 1e-3) + 15
     shape = (intr.height, intr.width)
-    return tuple(np.concatenate(o).reshape(shape) for o in out)
+    out = np.full(shape, -1), np.zeros(shape, bool), np.zeros(shape, bool)
+    for v0 in range(0, intr.height, TILE_PX):
+        for u0 in range(0, intr.width, TILE_PX):
+            v, u = (a.reshape(-1, 1) for a in np.mgrid[v0:min(v0 + TILE_PX, intr.height),
+                                                       u0:min(u0 + TILE_PX, intr.width)])
+            mid = np.array([u0, v0]) + TILE_PX / 2
+            (idx,) = np.nonzero(np.abs(centre - mid).max(1) <= reach + TILE_PX)
+            near = np.maximum(np.abs(u - centre[idx, 0]), np.abs(v - centre[idx, 1])) <= reach[idx]
+            ref, unsure, multi = _nearest_hits(p[idx], n[idx], r[idx], intr, (u - intr.cx) / intr.fx,
+                                               (v - intr.cy) / intr.fy, near, rim_px, min_cos)
+            out[0][v, u] = np.where(ref >= 0, idx[np.maximum(ref, 0)], -1)[:, None]
+            out[1][v, u] = unsure[:, None]
+            out[2][v, u] = multi[:, None]
+    return out
+
+
+def _nearest_hits(p, n, r, intr, dx, dy, near, rim_px, min_cos):
+    """reference() on the rays (dx, dy, 1) (pixels, 1) and the disks, pairs not `near` left out
+    of the rim test."""
+    dd = dx * dx + dy * dy + 1.0
+    dn = dx * n[:, 0] + dy * n[:, 1] + n[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (p * n).sum(1) / dn                      # (pixels, disks) intersection depth
+        dist2 = t * t * dd - 2 * t * (dx * p[:, 0] + dy * p[:, 1] + p[:, 2]) + (p * p).sum(1)
+        dist = np.sqrt(np.maximum(dist2, 0.0))
+        hit = (t > 0) & (dist <= r)
+        depth = np.where(hit, t, np.inf)
+        two = np.argsort(depth, axis=1)[:, :2]
+        best = np.take_along_axis(depth, two, 1)
+        cos = np.abs(dn) / np.sqrt(dd)
+        footprint = t / intr.focal_px / np.maximum(cos, 1e-6)   # metres per pixel on the disk
+        relevant = near & (t > 0) & (t <= best[:, :1] + 1e-6)
+        unsure = (relevant & ((np.abs(dist - r) < rim_px * footprint)
+                              | (hit & (cos < min_cos)))).any(1)
+        unsure |= best[:, 1] - best[:, 0] < 1e-5
+    return np.where(np.isfinite(best[:, 0]), two[:, 0], -1), unsure, hit.sum(1) >= 2
 
 
 def scene(seed=3):
