@@ -42,7 +42,7 @@ WORKERS ?= 2
 test: setup
 	$(PY) -m pytest -q -n $(WORKERS) --dist loadfile
 
-# Everything but the end-to-end runs, fuzzing and clusters (about a minute and a half).
+# Everything but the end-to-end runs, fuzzing and clusters (about two minutes).
 test-fast: setup
 	$(PY) -m pytest -q -n $(WORKERS) --dist loadfile -m "not slow"
 
