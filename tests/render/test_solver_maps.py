@@ -40,7 +40,7 @@ def reference(p, n, r, intr, rim_px=0.5, min_cos=0.1):
             near = np.maximum(np.abs(u - centre[idx, 0]), np.abs(v - centre[idx, 1])) <= reach[idx]
             ref, unsure, multi = _nearest_hits(p[idx], n[idx], r[idx], intr, (u - intr.cx) / intr.fx,
                                                (v - intr.cy) / intr.fy, near, rim_px, min_cos)
-            out[0][v, u] = np.where(ref >= 0, idx[np.maximum(ref, 0)], -1)[:, None]
+            out[0][v, u] = np.append(idx, -1)[ref][:, None]       # -1 (no disk) stays -1
             out[1][v, u] = unsure[:, None]
             out[2][v, u] = multi[:, None]
     return out
@@ -56,7 +56,7 @@ def _nearest_hits(p, n, r, intr, dx, dy, near, rim_px, min_cos):
         dist2 = t * t * dd - 2 * t * (dx * p[:, 0] + dy * p[:, 1] + p[:, 2]) + (p * p).sum(1)
         dist = np.sqrt(np.maximum(dist2, 0.0))
         hit = (t > 0) & (dist <= r)
-        depth = np.where(hit, t, np.inf)
+        depth = np.pad(np.where(hit, t, np.inf), ((0, 0), (0, 2)), constant_values=np.inf)  # 2 disks at least
         two = np.argsort(depth, axis=1)[:, :2]
         best = np.take_along_axis(depth, two, 1)
         cos = np.abs(dn) / np.sqrt(dd)
