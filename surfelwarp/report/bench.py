@@ -3,12 +3,13 @@
 SurfelWarp (and with --compare-with dynamicfusion the baseline, on the same frames) runs in a
 fresh process as `compare` runs it; from its metrics.json the benchmark prints, as markdown:
 per-stage medians (frames after the first, which only initialises), ms per 100k surfels of
-every stage at three model sizes (the frames in thirds by surfel count), bytes per surfel of the
-whole surfel model (surfel arrays and warp field), the colour stage's share of a frame (where
-colour features were matched), and the ratios DynamicFusion / SurfelWarp per frame and in the
-model update (every stage after the shared tracker but a saved frame's outputs). With
---open3d, Open3D's dense SLAM (open3d.t.pipelines.slam on the CPU, depth only) tracks and fuses
-the same frames as a reference for what a compiled CPU pipeline does per frame.
+every stage at three model sizes (the frames in thirds by surfel count; one size if the thirds
+are alike), bytes per surfel of the whole surfel model (surfel arrays and warp field), the
+colour stage's share of a frame (where colour features were matched), and the ratios
+DynamicFusion / SurfelWarp per frame and in the model update (every stage after the shared
+tracker but a saved frame's outputs). With --open3d, Open3D's dense SLAM
+(open3d.t.pipelines.slam on the CPU, depth only) tracks and fuses the same frames as a
+reference for what a compiled CPU pipeline does per frame.
 
 The machine is shared and noisy: compare ratios measured in one run, not times across runs.
 """
@@ -44,11 +45,18 @@ def _after_first(metrics: dict) -> tuple[slice, dict[str, np.ndarray], np.ndarra
     return later, seconds, np.array([f["seconds"]["total"] for f in metrics["frames"]])[later]
 
 
+SAME_SIZE = 1.05     # thirds of the run whose model sizes are within this ratio are one size
+
+
 def stage_table(metrics: dict) -> list[str]:
-    """Per-stage median ms, and ms per 100k surfels at three model sizes (SurfelWarp only)."""
+    """Per-stage median ms, and ms per 100k surfels at three model sizes (SurfelWarp only; one
+    size if the model stayed within SAME_SIZE of one)."""
     later, seconds, totals = _after_first(metrics)
     surfels = np.array([f.get("surfels") or 0 for f in metrics["frames"]], float)[later]
     thirds = [t for t in np.array_split(np.argsort(surfels, kind="stable"), 3) if len(t)] if surfels.any() else []
+    sizes = [np.median(surfels[t]) for t in thirds]
+    if thirds and max(sizes) <= SAME_SIZE * max(min(sizes), 1):
+        thirds = [np.concatenate(thirds)]      # a model that does not grow has one size, not three
     head = "| stage | median ms |" + "".join(f" ms/100k surfels at {np.median(surfels[t]) / 1000:.0f}k |"
                                            for t in thirds)
     lines = [head, "|---|---:|" + "---:|" * len(thirds)]

@@ -27,6 +27,17 @@ def test_stage_table_gives_the_cost_per_100k_surfels_at_three_sizes():
     assert "| read | 1.0 |" in "\n".join(lines)
 
 
+def test_a_model_that_does_not_grow_has_one_size():
+    lines = stage_table(fake_run([66_000, 66_100, 66_000, 66_300, 66_200, 66_400, 66_500], 0.03))
+    assert lines[0] == "| stage | median ms | ms/100k surfels at 66k |"
+    assert lines[1] == "|---|---:|---:|"
+    assert next(line for line in lines if line.startswith("| fuse |")) == "| fuse | 19.9 | 30.0 |"
+    # 5 % apart is still one size; more is three
+    columns = [stage_table(fake_run([10_000] + [10_000] * 3 + [10_000 + d] * 3 + [10_000 + 2 * d] * 3, 0.03))[0]
+               .count("surfels at") for d in (250, 300)]
+    assert columns == [1, 3]
+
+
 def test_memory_line_states_bytes_per_surfel_against_the_target():
     line = memory_line(fake_run([1000, 2000], 0.01))
     assert "**100 bytes per surfel** (within the 208-byte target)" in line and "2000 surfels" in line
