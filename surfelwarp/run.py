@@ -167,8 +167,7 @@ def run_sequence(seq: Sequence, out_dir: Path, method: Method, *, save_every: in
             if not claimed:              # this run is under way: the earlier one's outputs go
                 outputs.claim()
                 claimed = True
-            record.seconds = {"read": waited["read"], "preprocess": waited["preprocess"],
-                              "ahead": waited["ahead"], **record.seconds, "total": t3 - t0}
+            record.seconds = {**waited, **record.seconds, "total": t3 - t0}     # read, preprocess, ahead first
             record.ahead_seconds = took
             record.rss_mb = round(rss_mb(), 1)
             outputs.add_frame(record)
