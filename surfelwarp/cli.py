@@ -91,6 +91,8 @@ def _add_bench_arguments(p: argparse.ArgumentParser) -> None:
                    help="run the baseline on the same frames and print the speed ratios")
     p.add_argument("--open3d", action="store_true",
                    help="time Open3D's dense SLAM on the same frames (needs the 'bench' extra, open3d-cpu)")
+    p.add_argument("--colour-cost", action="store_true",
+                   help="run SurfelWarp again without colour and print all colour adds to a frame")
 
 
 def _preprocess_params(args: argparse.Namespace):
@@ -228,7 +230,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
     if args.out is not None:
         check_out_folder(args.input, args.out)
-    print(bench(_input_spec(args), args.compare_with, args.open3d))
+    print(bench(_input_spec(args), args.compare_with, args.open3d, args.colour_cost))
     return 0
 
 

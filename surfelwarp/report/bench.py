@@ -5,7 +5,8 @@ fresh process as `compare` runs it; from its metrics.json the benchmark prints, 
 per-stage medians (frames after the first, which only initialises), ms per 100k surfels of
 every stage at three model sizes (the frames in thirds by surfel count; one size if the thirds
 are alike), bytes per surfel of the whole surfel model (surfel arrays and warp field), the
-colour stage's share of a frame (where colour features were matched), and the ratios
+colour stage's share of a frame (where colour features were matched; with --colour-cost also
+everything colour adds, against SurfelWarp run again without it), and the ratios
 DynamicFusion / SurfelWarp per frame and in the model update (every stage after the shared
 tracker but a saved frame's outputs). With --open3d, Open3D's dense SLAM
 (open3d.t.pipelines.slam on the CPU, depth only) tracks and fuses the same frames as a
@@ -109,7 +110,27 @@ def colour_line(metrics: dict) -> str | None:
     return (f"Colour: the `features` stage (detection, matching, flow, refinement, checks) takes "
             f"{1000 * np.median(features[later]):.0f} ms, **{100 * share:.1f} % of a frame** (median; {verdict} "
             f"the {100 * COLOUR_TARGET_SHARE:.0f} % target).{early} Not counted: the feature term in the non-rigid "
-            f"solve and the colour pairs in rigid ICP.")
+            f"solve and the colour pairs in rigid ICP (`--colour-cost` times all colour adds).")
+
+
+def colour_cost_line(with_colour: dict, without: dict) -> str:
+    """Everything colour adds to a frame: the median frame of a run with colour against that of
+    the same frames run with the feature term off (no colour work at all), and the stages that
+    grew most. Each run follows its own solution, so a stage's growth includes the work colour
+    changes (a Gauss-Newton iteration more where it moves the solve); the read-ahead worker's
+    colour work counts where a frame waits for it or loses the cores to it."""
+    later, grown, totals = _after_first(with_colour)
+    _, off, totals_off = _after_first(without)
+    a, b = float(np.median(totals)), float(np.median(totals_off))
+    share = (a - b) / max(a, 1e-12)
+    verdict = "within" if share <= COLOUR_TARGET_SHARE else "above"
+    growth = [(1000 * (np.median(s[later]) - (np.median(off[stage][later]) if stage in off else 0.0)), stage)
+              for stage, s in grown.items()]
+    most = ", ".join(f"`{stage}` +{g:.0f}" for g, stage in sorted(growth, reverse=True)[:4] if g >= 0.5)
+    return (f"Colour, all it adds: a frame takes {1000 * a:.0f} ms with colour and {1000 * b:.0f} ms with the "
+            f"feature term off (no colour work), so colour is **{100 * share:.1f} % of a frame** ({verdict} the "
+            f"{100 * COLOUR_TARGET_SHARE:.0f} % target)" + (f"; the stages that grew most (median ms): {most}."
+                                                              if most else "."))
 
 
 def run_open3d(spec: CompareSpec, voxel_m: float = OPEN3D_VOXEL_M) -> Open3DResult:
@@ -146,9 +167,12 @@ def run_open3d(spec: CompareSpec, voxel_m: float = OPEN3D_VOXEL_M) -> Open3DResu
     return Open3DResult(1000 * float(np.median(later)), len(seconds), voxel_m)
 
 
-def bench(spec: CompareSpec, compare_with: str | None = None, open3d: bool = False) -> str:
-    """Run and report (markdown). The runs go to spec.out, or a temporary folder if it is None."""
+def bench(spec: CompareSpec, compare_with: str | None = None, open3d: bool = False, colour_cost: bool = False) -> str:
+    """Run and report (markdown). The runs go to spec.out, or a temporary folder if it is None;
+    with colour_cost and colour features matched, SurfelWarp once more without colour, into
+    its `colour-off/` folder."""
     names = ["surfelwarp"] + ([compare_with] if compare_with else [])
+    colour_off = None
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(spec.out) if spec.out is not None else Path(tmp)
         run_spec = CompareSpec(**{**spec.__dict__, "out": out})
@@ -156,6 +180,10 @@ def bench(spec: CompareSpec, compare_with: str | None = None, open3d: bool = Fal
         for name in names:
             run_in_child(name, run_spec)
         metrics = {name: load_metrics(out / name) for name in names}
+        if colour_cost and colour_line(metrics["surfelwarp"]):
+            run_in_child("surfelwarp", CompareSpec(**{**run_spec.__dict__, "out": out / "colour-off",
+                                                      "surfelwarp_colour": False}))
+            colour_off = load_metrics(out / "colour-off" / "surfelwarp")
     lines = [f"# Benchmark of {spec.input}", "", f"{metrics['surfelwarp']['summary']['frames']} frames.", ""]
     for name in names:
         lines += [f"## {LABELS[name]}: stages", "", *stage_table(metrics[name]), ""]
@@ -165,6 +193,11 @@ def bench(spec: CompareSpec, compare_with: str | None = None, open3d: bool = Fal
     colour = colour_line(metrics["surfelwarp"])
     if colour:
         lines += [colour, ""]
+    if colour_off is not None:
+        lines += [colour_cost_line(metrics["surfelwarp"], colour_off), ""]
+    elif colour_cost:
+        lines += ["Colour, all it adds: nothing to time, no colour features were matched (no colour frames, or "
+                  "the feature term is off).", ""]
     if compare_with:
         lines += speed_lines(metrics)
     if open3d:

@@ -17,11 +17,15 @@ METHODS = ("surfelwarp", "dynamicfusion")
 LABELS = {"surfelwarp": "SurfelWarp", "dynamicfusion": "DynamicFusion"}
 
 
-def make_surfelwarp(intrinsics: Intrinsics, warp_field=None, fusion: bool = True):
+def make_surfelwarp(intrinsics: Intrinsics, warp_field=None, fusion: bool = True, colour: bool = True):
     """The full pipeline, or template tracking with fusion=False; warp_field: WarpFieldParams
-    replacing SurfelWarp's default (None keeps it)."""
+    replacing SurfelWarp's default (None keeps it); colour=False: the feature term off, so no
+    colour work at all (as `[tracking.nonrigid] feature_weight = 0`)."""
     from surfelwarp.methods.surfelwarp.pipeline import SurfelWarpMethod, SurfelWarpParams
     params = SurfelWarpParams() if warp_field is None else replace(SurfelWarpParams(), warp_field=warp_field)
+    if not colour:
+        tracking = params.tracking
+        params = replace(params, tracking=replace(tracking, nonrigid=replace(tracking.nonrigid, feature_weight=0.0)))
     return SurfelWarpMethod(intrinsics, params, fusion=fusion)
 
 
@@ -44,6 +48,7 @@ class CompareSpec:
     dynamicfusion: object | None = None        # DynamicFusionParams, None = defaults
     surfelwarp_warp_field: object | None = None  # WarpFieldParams for SurfelWarp, None = its default
     surfelwarp_fusion: bool = True  # False: SurfelWarp as template tracking
+    surfelwarp_colour: bool = True  # False: SurfelWarp without the feature term (no colour work)
     progress: bool | None = False
 
 
@@ -60,7 +65,8 @@ def run_method(name: str, spec: CompareSpec) -> tuple[str, str] | None:
     try:
         seq = open_input(spec)
         if name == "surfelwarp":
-            method = make_surfelwarp(seq.intrinsics, spec.surfelwarp_warp_field, spec.surfelwarp_fusion)
+            method = make_surfelwarp(seq.intrinsics, spec.surfelwarp_warp_field, spec.surfelwarp_fusion,
+                                     spec.surfelwarp_colour)
         else:
             method = make_dynamicfusion(seq.intrinsics, spec.dynamicfusion)
         run_sequence(seq, spec.out / name, method, save_every=spec.save_every, preprocess_params=spec.preprocess,

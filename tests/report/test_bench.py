@@ -1,12 +1,13 @@
 """`surfelwarp bench`: per-stage medians, cost per 100k surfels at three model sizes, bytes per surfel,
 the colour stage's share."""
+import json
 import subprocess
 import sys
 
 import pytest
 
 from surfelwarp.data_tools import synth
-from surfelwarp.report.bench import colour_line, memory_line, stage_table
+from surfelwarp.report.bench import colour_cost_line, colour_line, memory_line, stage_table
 
 
 def fake_run(surfels, seconds_per_100k):
@@ -64,11 +65,31 @@ def test_colour_line_gives_the_colour_stage_share_of_a_frame():
     assert "**10.0 % of a frame**" in colour_line(metrics) and "within the 20 % target" in colour_line(metrics)
 
 
+def test_colour_cost_line_gives_all_colour_adds_against_the_run_without():
+    """Known answer: frames of 1.0 s with colour and 0.7 s without are 30 % colour; the stages
+    that grew are named by how much (the first frame, which only initialises, left out)."""
+    def run(features, nonrigid):
+        metrics = fake_run([1000] * 4, 0.0)
+        for f in metrics["frames"]:
+            f["seconds"].update(features=features, nonrigid=nonrigid, read=0.1)
+            f["seconds"]["total"] = features + nonrigid + 0.1
+        metrics["frames"][0]["seconds"].update(features=5.0, total=5.0)
+        return metrics
+
+    line = colour_cost_line(run(0.25, 0.65), run(0.0, 0.6))
+    assert "1000 ms with colour and 700 ms" in line and "**30.0 % of a frame** (above the 20 % target)" in line
+    assert "`features` +250, `nonrigid` +50." in line and "`read`" not in line
+    line = colour_cost_line(run(0.1, 0.65), run(0.0, 0.6))
+    assert "**17.6 % of a frame** (within the 20 % target)" in line
+    assert colour_cost_line(run(0.0, 0.6), run(0.0, 0.6)).endswith("(within the 20 % target).")
+
+
 @pytest.mark.slow
 def test_bench_runs_both_methods_and_prints_the_ratios(tmp_path):
     seq = synth.generate("sheet", tmp_path / "sheet", frames=4, size=(160, 120))
     proc = subprocess.run([sys.executable, "-m", "surfelwarp", "bench", str(seq), "--compare-with", "dynamicfusion",
-                           "--open3d", "--out", str(tmp_path / "runs")], capture_output=True, text=True)
+                           "--open3d", "--colour-cost", "--out", str(tmp_path / "runs")], capture_output=True,
+                          text=True)
     assert proc.returncode == 0, proc.stderr
     text = proc.stdout
     for part in ("## SurfelWarp: stages", "## DynamicFusion: stages", "bytes per surfel", "x in the model update",
@@ -76,6 +97,10 @@ def test_bench_runs_both_methods_and_prints_the_ratios(tmp_path):
         assert part in text, text
     assert ("x Open3D's time" in text) or ("Open3D is not available" in text)
     assert (tmp_path / "runs" / "surfelwarp" / "metrics.json").exists()
+    # colour: the stage, and all colour adds against SurfelWarp without it (no matches there)
+    assert "Colour: the `features` stage" in text and "Colour, all it adds: a frame takes" in text, text
+    off = json.loads((tmp_path / "runs" / "colour-off" / "surfelwarp" / "metrics.json").read_text())
+    assert all(f.get("feature_matches") is None for f in off["frames"])
 
 
 def test_bench_rejects_bad_input_with_one_line(tmp_path):
