@@ -92,7 +92,8 @@ def _add_bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--open3d", action="store_true",
                    help="time Open3D's dense SLAM on the same frames (needs the 'bench' extra, open3d-cpu)")
     p.add_argument("--colour-cost", action="store_true",
-                   help="run SurfelWarp again without colour and print all colour adds to a frame")
+                   help="run SurfelWarp again with the feature term off and print all the colour "
+                        "tracking adds to a frame")
 
 
 def _preprocess_params(args: argparse.Namespace):

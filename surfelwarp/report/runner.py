@@ -19,8 +19,9 @@ LABELS = {"surfelwarp": "SurfelWarp", "dynamicfusion": "DynamicFusion"}
 
 def make_surfelwarp(intrinsics: Intrinsics, warp_field=None, fusion: bool = True, colour: bool = True):
     """The full pipeline, or template tracking with fusion=False; warp_field: WarpFieldParams
-    replacing SurfelWarp's default (None keeps it); colour=False: the feature term off, so no
-    colour work at all (as `[tracking.nonrigid] feature_weight = 0`)."""
+    replacing SurfelWarp's default (None keeps it); colour=False: the feature term off, so the
+    tracker does no colour work (as `[tracking.nonrigid] feature_weight = 0`; the surfels still
+    fuse the colour)."""
     from surfelwarp.methods.surfelwarp.pipeline import SurfelWarpMethod, SurfelWarpParams
     params = SurfelWarpParams() if warp_field is None else replace(SurfelWarpParams(), warp_field=warp_field)
     if not colour:
@@ -48,7 +49,7 @@ class CompareSpec:
     dynamicfusion: object | None = None        # DynamicFusionParams, None = defaults
     surfelwarp_warp_field: object | None = None  # WarpFieldParams for SurfelWarp, None = its default
     surfelwarp_fusion: bool = True  # False: SurfelWarp as template tracking
-    surfelwarp_colour: bool = True  # False: SurfelWarp without the feature term (no colour work)
+    surfelwarp_colour: bool = True  # False: SurfelWarp without the feature term (colour not matched)
     progress: bool | None = False
 
 
