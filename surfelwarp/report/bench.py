@@ -181,7 +181,8 @@ def bench(spec: CompareSpec, compare_with: str | None = None, open3d: bool = Fal
         for name in names:
             run_in_child(name, run_spec)
         metrics = {name: load_metrics(out / name) for name in names}
-        if colour_cost and colour_line(metrics["surfelwarp"]):
+        colour = colour_line(metrics["surfelwarp"])
+        if colour_cost and colour:
             run_in_child("surfelwarp", CompareSpec(**{**run_spec.__dict__, "out": out / "colour-off",
                                                       "surfelwarp_colour": False}))
             colour_off = load_metrics(out / "colour-off" / "surfelwarp")
@@ -191,7 +192,6 @@ def bench(spec: CompareSpec, compare_with: str | None = None, open3d: bool = Fal
     memory = memory_line(metrics["surfelwarp"])
     if memory:
         lines += [memory, ""]
-    colour = colour_line(metrics["surfelwarp"])
     if colour:
         lines += [colour, ""]
     if colour_off is not None:
