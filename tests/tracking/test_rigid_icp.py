@@ -277,6 +277,11 @@ def test_compiled_pairing_equals_the_numpy_reference(synthetic):
             assert (a is None) == (b is None)
             if a is not None:
                 assert np.allclose(a, b, rtol=0, atol=2e-6)
+        # Without the points (what the median residual reads): the same residuals and weights.
+        p, n, r, w = _associate(level, T, np.eye(4), cos, points=False)
+        assert p is None and n is None
+        assert np.array_equal(r, got[2])
+        assert (w is None) == (got[3] is None) and (w is None or np.array_equal(w, got[3]))
 
 
 def test_pair_moments_equal_the_sums_of_the_written_pairs(synthetic):
