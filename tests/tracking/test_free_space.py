@@ -281,3 +281,31 @@ def test_holes_opened_about_the_valid_pixels_equal_the_whole_images_opening():
     small[90:110, 90:110] = False
     small[100, 100] = True          # a hole too small for the disc: not free space
     assert _holes(small, 8).sum() == small.sum() - 1
+
+
+def test_the_points_within_reach_are_numpys():
+    """The compiled first pass of `residuals` (points in front, inside the image, nearer than
+    their pixel's reach) gives numpy's points, pixels and camera points, bit for bit, with
+    points behind the camera, outside the image and NaN among them."""
+    from surfelwarp.tracking.free_space import _within_reach
+    T = se3_exp(np.array([0.05, -0.03, 0.02, 0.1, -0.05, 0.2]))
+    space = FreeSpace(square_depth(behind=2.0), INTR, T)
+    rng = np.random.default_rng(5)
+    x = (T[:3, :3] @ at_pixel(rng.uniform(-40, INTR.width + 40, 4000), rng.uniform(-40, INTR.height + 40, 4000),
+                              rng.uniform(-0.5, 3.0, 4000)) + T[:3, 3:])
+    x[:, :5] = np.nan
+    R, t = space.R_wc, space.t_wc
+    q = np.stack([x[0] * R[i, 0] + x[1] * R[i, 1] + x[2] * R[i, 2] + t[i] for i in range(3)])
+    h, w = INTR.height, INTR.width
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / q[2]
+        u, v = INTR.fx * q[0] * inv + INTR.cx, INTR.fy * q[1] * inv + INTR.cy
+        inside = (q[2] > 1e-3) & (u >= 0) & (u < w - 1) & (v >= 0) & (v < h - 1)
+    sel = np.flatnonzero(inside)
+    sel = sel[q[2, sel] + P.depth_margin_m < space._reach[v[sel].astype(np.int64) * w + u[sel].astype(np.int64)]]
+    n = x.shape[1]
+    got, uv, cam = np.empty(n, np.int64), np.empty((2, n)), np.empty((3, n))
+    k = _within_reach(x, R, t, INTR.fx, INTR.fy, INTR.cx, INTR.cy, h, w, space._reach, P.depth_margin_m, got, uv, cam)
+    assert 100 < k < n - 1000
+    assert np.array_equal(got[:k], sel)
+    assert np.array_equal(uv[:, :k], np.stack([u[sel], v[sel]])) and np.array_equal(cam[:, :k], q[:, sel])
