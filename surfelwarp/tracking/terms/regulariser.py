@@ -85,17 +85,16 @@ def _add_regulariser(p, L, edge_j, edge_i, slots, flip, lam, huber_m, upper, gra
     -= pair(t, a) when j < i); gradient i += (a x r, r), j -= (t x r, r). pair(u, v) is
     [[(u.v) I - v u^T, [u]x], [-[v]x, I]]."""
     total = 0.0
+    # Allocated once: three per edge made a call on tube-wall's 17k edges 5.2 instead of 3.6 ms.
+    a, t, r = np.empty(3), np.empty(3), np.empty(3)
     for e in range(len(edge_j)):
         j, i = edge_j[e], edge_i[e]
-        a = np.empty(3)
         for c in range(3):
             a[c] = L[i, c, 3]
             for d in range(3):
                 a[c] += L[i, c, d] * (p[j, d] - p[i, d])
-        t = np.empty(3)
         for c in range(3):
             t[c] = L[j, c, 3]
-        r = np.empty(3)
         r2 = 0.0
         for c in range(3):
             r[c] = p[i, c] + a[c] - p[j, c] - t[c]
