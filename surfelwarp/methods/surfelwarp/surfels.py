@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+import numba
 import numpy as np
 
 
@@ -50,7 +51,7 @@ class SurfelModel:
         for f in fields(self):
             mine, theirs = getattr(self, f.name), getattr(other, f.name)
             a = out[f.name] = np.empty((len(rows) + len(theirs),) + mine.shape[1:], np.result_type(mine, theirs))
-            np.take(mine, rows, axis=0, out=a[:len(rows)])
+            _take_rows(mine, rows, a[:len(rows)])
             a[len(rows):] = theirs
         return SurfelModel(**out)
 
@@ -72,6 +73,25 @@ class SurfelModel:
                            np.full(n, time, np.int32), np.full(n, time, np.int32),
                            np.zeros((n, k), np.int32), np.zeros((n, k), np.float32),
                            np.arange(first_id, first_id + n, dtype=np.uint32), color, color_weight)
+
+
+def _take_rows(a: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
+    """out[:] = a[rows] (rows along the first axis). Every model array has 4-byte items, copied
+    as uint32 words in a compiled loop: np.take's per-row copy made a frame's removal 22 instead
+    of 11 ms on 275k surfels (14 arrays)."""
+    if len(rows) and a.dtype.itemsize == 4 and a.dtype == out.dtype and a.flags.c_contiguous and out.flags.c_contiguous:
+        _gather_words(a.reshape(len(a), -1).view(np.uint32), np.asarray(rows, np.int64),
+                      out.reshape(len(out), -1).view(np.uint32))
+    else:
+        np.take(a, rows, axis=0, out=out)
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather_words(src, rows, out):
+    for i in range(len(rows)):
+        r = rows[i]
+        for j in range(src.shape[1]):
+            out[i, j] = src[r, j]
 
 
 def _rows(which: np.ndarray) -> np.ndarray:

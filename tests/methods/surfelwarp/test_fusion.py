@@ -444,9 +444,11 @@ def test_one_copy_of_the_kept_surfels_then_the_new_ones(obs):
     rng = np.random.default_rng(2)
     model = model_from(obs, confidence=rng.uniform(1, 9, obs.num_valid).astype(np.float32))
     new = model_from(obs, time=3).select(rng.choice(len(model), 50, replace=False))
-    for keep in (rng.random(len(model)) < 0.7, np.flatnonzero(rng.random(len(model)) < 0.2)):
+    # a mask, sorted rows, rows in any order (kept in that order), none kept
+    for keep in (rng.random(len(model)) < 0.7, np.flatnonzero(rng.random(len(model)) < 0.2),
+                 rng.permutation(len(model))[:100], np.zeros(len(model), bool)):
         got, want = model.select_then(keep, new), model.select(keep).concatenate(new)
-        assert len(got) == len(want) > len(new)
+        assert len(got) == len(want) == (keep.sum() if keep.dtype == bool else len(keep)) + len(new)
         for f in fields(got):
             a, b = getattr(got, f.name), getattr(want, f.name)
             assert a.dtype == b.dtype and np.array_equal(a, b), f.name
