@@ -452,3 +452,5 @@ def test_one_copy_of_the_kept_surfels_then_the_new_ones(obs):
         for f in fields(got):
             a, b = getattr(got, f.name), getattr(want, f.name)
             assert a.dtype == b.dtype and np.array_equal(a, b), f.name
+    with pytest.raises(IndexError):
+        model.select_then(np.array([0, len(model)]), new)
