@@ -178,3 +178,25 @@ def test_free_space_built_ahead_is_the_observations_own():
     got = tracker.free_space(c, T).residuals(world)[0]
     want = FreeSpace(c.depth_m, intr, T, tracker.params.nonrigid.silhouette, c.beyond).residuals(world)[0]
     assert np.array_equal(got, want) and (got > 0).sum() > 30
+
+
+@pytest.mark.parametrize("k", [4, 3])
+def test_the_stillness_map_is_the_stillness_of_the_shown_points(k):
+    """The compiled map (four nodes a point) and numpy's (any other k) against point_stillness
+    of the shown rows, bit for bit: empty pixels NaN, nodes born since the anchors still."""
+    from surfelwarp.tracking.tracker import point_stillness, stillness_map
+    rng = np.random.default_rng(4)
+    n, m = 5000, 60
+    knn = rng.integers(0, m + 5, (n, k)).astype(np.int32)          # 5 nodes born since
+    weights = rng.random((n, k)).astype(np.float32)
+    node = np.where(rng.random(m) < 0.3, 0.0, rng.random(m)).astype(np.float32)
+    index = rng.integers(-1, n, (48, 64)).astype(np.int32)
+    got = stillness_map(index, knn, weights, node)
+    hit = index >= 0
+    want = np.full(index.shape, np.nan, np.float32)
+    want[hit] = point_stillness(knn[index[hit]], weights[index[hit]], node)
+    assert np.isnan(got[~hit]).all() and np.array_equal(got[hit], want[hit])
+    # known answer: a point on one still node (1) and three released (0), weights 0.1 .. 0.4
+    one = stillness_map(np.zeros((1, 1), np.int32), np.array([[0, 1, 1, 1][:k]], np.int32),
+                        np.array([[0.1, 0.2, 0.3, 0.4][:k]], np.float32), np.array([1, 0], np.float32))
+    assert one[0, 0] == np.float32(0.1)
