@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-import numba
 import numpy as np
 
 from surfelwarp.deform.hierarchy import Hierarchy, HierarchyParams, build_hierarchy, with_hierarchy
@@ -27,6 +26,7 @@ from surfelwarp.tracking.ahead import FoundAhead
 from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.gauss_newton import NonRigidParams, NonRigidResult, solve_nonrigid
 from surfelwarp.tracking.rigid_icp import PointPairs, RigidParams, RigidResult, rigid_icp
+from surfelwarp.tracking.stillness import point_stillness, stillness_map
 
 
 CAMERAS = ("moving", "static")
@@ -115,51 +115,6 @@ def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None
         A = held.project(A)
     G = invert(A) @ field.global_transforms()
     return field.with_transforms(to_local(G, field.nodes)), A
-
-
-def point_stillness(knn: np.ndarray, weights: np.ndarray, node: np.ndarray) -> np.ndarray:
-    """(N,) float32 stillness of points skinned by knn/weights (N, k): their weights over the
-    nodes' stillness `node` (M,) float32; nodes born since (index >= M) are still."""
-    knn = np.asarray(knn)
-    still = np.where(knn < len(node), node[np.minimum(knn, len(node) - 1)], 1.0)
-    return np.einsum("nk,nk->n", np.asarray(weights, np.float32), still.astype(np.float32))
-
-
-def stillness_map(index_map: np.ndarray, knn: np.ndarray, weights: np.ndarray, node: np.ndarray) -> np.ndarray:
-    """(H, W) point_stillness of the points a map shows (`index_map`, -1: none, NaN), in one
-    compiled pass for the usual four nodes a point (numpy gathered the shown rows and their
-    nodes' stillness first: 20 -> ~5 ms a frame on tube-wall's 640x480 map)."""
-    weights, node = np.asarray(weights), np.asarray(node, np.float32)
-    if knn.ndim != 2 or knn.shape[1] != 4 or weights.dtype != np.float32:
-        hit = index_map >= 0
-        out = np.full(index_map.shape, np.nan, np.float32)
-        shown = index_map[hit]
-        # np.take: row gathers several times faster than fancy indexing.
-        out[hit] = point_stillness(np.take(knn, shown, axis=0), np.take(weights, shown, axis=0), node)
-        return out
-    out = np.empty(index_map.shape, np.float32)
-    _stillness_map(np.ascontiguousarray(index_map), np.ascontiguousarray(knn), np.ascontiguousarray(weights),
-                   node, out)
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _stillness_map(index, knn, weights, node, out):
-    for v in range(index.shape[0]):
-        for u in range(index.shape[1]):
-            i = index[v, u]
-            if i < 0:
-                out[v, u] = np.float32(np.nan)
-                continue
-            # einsum's order for four float32 terms
-            out[v, u] = (_weighed(weights, knn, node, i, 0) + _weighed(weights, knn, node, i, 1)) + \
-                (_weighed(weights, knn, node, i, 2) + _weighed(weights, knn, node, i, 3))
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _weighed(weights, knn, node, i, s):
-    j = knn[i, s]
-    return weights[i, s] * (node[j] if j < len(node) else np.float32(1.0))
 
 
 @dataclass(frozen=True)

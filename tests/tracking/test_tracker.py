@@ -184,7 +184,7 @@ def test_free_space_built_ahead_is_the_observations_own():
 def test_the_stillness_map_is_the_stillness_of_the_shown_points(k):
     """The compiled map (four nodes a point) and numpy's (any other k) against point_stillness
     of the shown rows, bit for bit: empty pixels NaN, nodes born since the anchors still."""
-    from surfelwarp.tracking.tracker import point_stillness, stillness_map
+    from surfelwarp.tracking.stillness import point_stillness, stillness_map
     rng = np.random.default_rng(4)
     n, m = 5000, 60
     knn = rng.integers(0, m + 5, (n, k)).astype(np.int32)          # 5 nodes born since
