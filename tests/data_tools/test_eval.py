@@ -208,6 +208,24 @@ def pose_only_run(run, poses, noise_m=0.0, rng=None):
     (run / "metrics.json").write_text(json.dumps({"method": "fake", "frames": frames}))
 
 
+def test_step_bias_is_the_lag_of_each_step_behind_the_true_one():
+    """A trajectory whose every step is 98 % of the true one (an orbit of 20 frames, steps of
+    ~16 mm): step bias -2 %; the true one: 0; a still camera: None (no step to measure)."""
+    angles = np.linspace(0, 0.6, 20)
+    truth = {f: se3_exp(np.array([0, a, 0, 0.5 * np.sin(a), 0, 0.5 * (1 - np.cos(a))])) for f, a in enumerate(angles)}
+    centres = np.stack([truth[f][:3, 3] for f in range(20)])
+    lagging = {}
+    for f in range(20):
+        T = truth[f].copy()
+        T[:3, 3] = centres[0] + 0.98 * (centres[f] - centres[0])
+        lagging[f] = T
+    assert abs(evaluate.trajectory_errors(lagging, truth)["step_bias_pct"] + 2.0) < 1e-9
+    assert abs(evaluate.trajectory_errors(truth, truth)["step_bias_pct"]) < 1e-12
+    still = {f: np.eye(4) for f in range(5)}
+    assert evaluate.trajectory_errors(still, still)["step_bias_pct"] is None
+    assert evaluate.trajectory_errors({}, truth)["step_bias_pct"] is None
+
+
 def test_seven_scenes_style_poses(tmp_path):
     seq = tmp_path / "seq"
     seq.mkdir()
