@@ -42,7 +42,8 @@ def _step_bias_pct(est: np.ndarray, gt: np.ndarray) -> float | None:
     """Mean of (estimated step - true step) . true step / |true step|^2 over the frames' camera
     steps of at least MIN_STEP_M, in %: a lag of the whole trajectory behind the motion (orbit
     with colour: -0.57 %, depth alone -0.07 %), None if the camera hardly moves."""
-    true_step, error = np.diff(gt, axis=0), np.diff(est, axis=0) - np.diff(gt, axis=0)
+    true_step = np.diff(gt, axis=0)
+    error = np.diff(est, axis=0) - true_step
     length2 = np.einsum("ij,ij->i", true_step, true_step)
     moving = length2 >= MIN_STEP_M ** 2
     if not moving.any():

@@ -19,8 +19,8 @@ def stillness_map(index_map: np.ndarray, knn: np.ndarray, weights: np.ndarray, n
     """(H, W) point_stillness of the points a map shows (`index_map`, -1: none, NaN), in one
     compiled pass for the usual four nodes a point (numpy gathered the shown rows and their
     nodes' stillness first: 20 -> ~5 ms a frame on tube-wall's 640x480 map)."""
-    weights, node = np.asarray(weights), np.asarray(node, np.float32)
-    if knn.ndim != 2 or knn.shape[1] != 4 or weights.dtype != np.float32:
+    weights, node = np.ascontiguousarray(weights, np.float32), np.asarray(node, np.float32)
+    if knn.shape[1] != 4:
         hit = index_map >= 0
         out = np.full(index_map.shape, np.nan, np.float32)
         shown = index_map[hit]
@@ -28,8 +28,7 @@ def stillness_map(index_map: np.ndarray, knn: np.ndarray, weights: np.ndarray, n
         out[hit] = point_stillness(np.take(knn, shown, axis=0), np.take(weights, shown, axis=0), node)
         return out
     out = np.empty(index_map.shape, np.float32)
-    _stillness_map(np.ascontiguousarray(index_map), np.ascontiguousarray(knn), np.ascontiguousarray(weights),
-                   node, out)
+    _stillness_map(np.ascontiguousarray(index_map), np.ascontiguousarray(knn), weights, node, out)
     return out
 
 

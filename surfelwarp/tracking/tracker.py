@@ -177,16 +177,20 @@ class Tracker:
         """(N,) how still each point is (0-1), given its nodes and weights (N, k) in the last
         solved field: its skinning over the nodes' stillness (NodeAnchors; 1 without anchors;
         nodes born since are still)."""
-        if self.anchors is None or self.params.anchor.weight <= 0:
-            return np.ones(len(knn), np.float32)
-        return point_stillness(knn, weights, self.anchors.still_weights())
+        node = self._node_stillness()
+        return np.ones(len(knn), np.float32) if node is None else point_stillness(knn, weights, node)
 
     def stillness_map(self, index_map: np.ndarray, knn: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """(H, W) stillness of a model map whose pixels show the points `index_map` (-1: none,
         NaN in the map) of the skinning knn/weights."""
-        if self.anchors is None or self.params.anchor.weight <= 0:
+        node = self._node_stillness()
+        if node is None:
             return np.where(index_map >= 0, np.float32(1.0), np.float32(np.nan))
-        return stillness_map(index_map, knn, weights, self.anchors.still_weights())
+        return stillness_map(index_map, knn, weights, node)
+
+    def _node_stillness(self) -> np.ndarray | None:
+        """(M,) the rest anchors' node stillness; None without anchors (every point still)."""
+        return self.anchors.still_weights() if self.anchors is not None and self.params.anchor.weight > 0 else None
 
     def colour_pairs(self, matches: AnchoredMatches | None, surfels: SurfelSet, field: WarpField
                      ) -> PointPairs | None:
