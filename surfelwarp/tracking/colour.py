@@ -23,6 +23,7 @@ from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, Featu
                                           flow_pairs, grid_pixels, lift, locally_rigid, match_descriptors,
                                           match_frames, near_prediction, on_model_map, refine, solved_index,
                                           surface_depth)
+from surfelwarp.tracking.patch_align import MotionPrior
 
 
 @dataclass(frozen=True)
@@ -122,12 +123,13 @@ class ColourMatcher:
                                   np.asarray(ids)[j[near]], surface_depth(obs.vertex_map, obs.valid))
 
     def matches(self, obs: CameraObservation, model: ModelView | None, field: WarpField | None,
-                T_last: np.ndarray) -> AnchoredMatches | None:
+                T_last: np.ndarray, T_predicted: np.ndarray | None = None) -> AnchoredMatches | None:
         """Colour correspondences of `obs` with the reference frame's and the last frame's, on
         the surfels the solve uses (`field`: the warp at the last frame; T_last the last frame's
         camera-to-world pose, the prediction of this one's: the checks allow the camera's motion
-        as they allow the scene's). Remembers obs for the next frame; with no model (the first
-        frame) that is all. None without colour."""
+        as they allow the scene's; T_predicted, its pose predicted by the camera's last motion,
+        primes the flow's patch alignment). Remembers obs for the next frame; with no model (the
+        first frame) that is all. None without colour."""
         if obs.color is None:
             self._previous_features = None
             return None
@@ -151,10 +153,15 @@ class ColourMatcher:
                 last_matches = match_frames(last_kp, kp, last.vertex_map, last.valid, obs.vertex_map, obs.valid, T, p)
             found.append(self._on_model(last_matches, model, field, 1.0))
             if p.flow:
-                found.append(self._flow_matches(last, obs, model, field, T))
+                found.append(self._flow_matches(last, obs, model, field, T, self._prior(T_last, T_predicted)))
         if not found:
             return None
         return combine(*found)
+
+    def _prior(self, T_last: np.ndarray, T_predicted: np.ndarray | None) -> MotionPrior | None:
+        """The camera's predicted motion from the last pose, which the flow's patches follow first
+        (patch_align.MotionPrior); None without a prediction."""
+        return None if T_predicted is None else MotionPrior(self.intrinsics, invert(T_predicted) @ T_last)
 
     def _keyframe_matches(self, kp: Keypoints, obs: CameraObservation, model: ModelView,
                           field: WarpField, pairs: KeyframePairs | None) -> AnchoredMatches:
@@ -182,7 +189,7 @@ class ColourMatcher:
         return AnchoredMatches(solved[keep], kf.points[ia[keep]], q[keep], np.ones(len(keep)))
 
     def _flow_matches(self, last: CameraObservation, obs: CameraObservation, model: ModelView, field: WarpField,
-                      T_last_to_now: np.ndarray) -> AnchoredMatches:
+                      T_last_to_now: np.ndarray, prior: MotionPrior | None = None) -> AnchoredMatches:
         """Dense flow into `obs` from the model's fused colour drawn at the last pose: the flow
         finds where the model's own texture went, so frame-to-frame errors do not add up as
         they do with flow from the last frame (used where the model has no colour drawn)."""
@@ -190,7 +197,7 @@ class ColourMatcher:
         current = (obs.vertex_map, obs.valid, T_last_to_now, p)
         if model.color_map is None or model.vertex_map is None or not model.color_drawn.any():
             pairs = flow_pairs(last.color, obs.color, last.valid, obs.valid, p,
-                               surface_depth(last.vertex_map, last.valid))
+                               surface_depth(last.vertex_map, last.valid), prior)
             return self._on_model(checked_pairs(*pairs, last.vertex_map, last.valid, *current), model, field,
                                   p.flow_weight)
         # The model's colour is drawn interpolated about the surfels' centres (render.colour_map),
@@ -201,7 +208,7 @@ class ColourMatcher:
         centres = model.vertex_map[grid[:, 1], grid[:, 0]].astype(np.float64)
         pa = self.intrinsics.project(centres).astype(np.float32)
         depth = np.where(drawn, model.vertex_map[..., 2], surface_depth(last.vertex_map, last.valid))
-        pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa, p, depth)
+        pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa, p, depth, prior)
         m = checked_points(pa[inside], pb[inside], centres[inside], np.ones(int(inside.sum()), bool), *current)
         return self._on_model(m, model, field, p.flow_weight)
 

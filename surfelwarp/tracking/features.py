@@ -21,7 +21,7 @@ from pykdtree.kdtree import KDTree
 
 from surfelwarp.geometry.se3 import transform_points
 from surfelwarp.tracking.descriptors import nearest_both_ways
-from surfelwarp.tracking.patch_align import FAILED, align
+from surfelwarp.tracking.patch_align import FAILED, MotionPrior, align
 
 
 DETECTORS = ("sift", "orb")
@@ -124,17 +124,19 @@ def surface_depth(vertex_map: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 
 def refine(previous_grey: np.ndarray | None, current_grey: np.ndarray | None, pa: np.ndarray, pb: np.ndarray,
-           params: FeatureParams, previous_depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+           params: FeatureParams, previous_depth: np.ndarray | None = None, prior: MotionPrior | None = None
+           ) -> tuple[np.ndarray, np.ndarray]:
     """(pb moved to where pa's patch of the previous image lies in the current one, whether to
     keep the pair): patch_align.align on the patch pixels of pa's surface (`previous_depth`,
-    metres, 0: none). A pair whose textured patch matches nothing within refine_max_px of pb is
-    wrong and dropped; one whose patch cannot say (plain, at a depth edge) is kept as found:
-    dropping those too cost 2.4 mm of EPE on the plain DeepDeform shirt, keeping the failed ones
-    lost the track of `fast` (EPE 0.9 -> 10.9 mm)."""
+    metres, 0: none), each moved first as `prior` predicts (patch_align.MotionPrior). A pair
+    whose textured patch matches nothing within refine_max_px of pb is wrong and dropped; one
+    whose patch cannot say (plain, at a depth edge) is kept as found: dropping those too cost
+    2.4 mm of EPE on the plain DeepDeform shirt, keeping the failed ones lost the track of `fast`
+    (EPE 0.9 -> 10.9 mm)."""
     if params.refine_radius_px == 0 or len(pa) == 0 or previous_grey is None or current_grey is None:
         return pb, np.ones(len(pa), bool)
     moved, status = align(previous_grey, current_grey, pa, pb, params.refine_radius_px, previous_depth,
-                          params.refine_depth_m, params.refine_max_px)
+                          params.refine_depth_m, params.refine_max_px, prior=prior)
     return moved.astype(np.float32), status != FAILED
 
 
@@ -231,7 +233,8 @@ def grid_pixels(mask: np.ndarray, stride_px: int) -> np.ndarray:
 
 
 def flow_at(previous_color: np.ndarray, current_color: np.ndarray, window: np.ndarray, pixels: np.ndarray,
-            params: FeatureParams, previous_depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+            params: FeatureParams, previous_depth: np.ndarray | None = None, prior: MotionPrior | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
     """Dense optical flow (OpenCV's DIS) from the previous to the current image, computed on the
     box around `window` and read bilinearly at sub-pixel `pixels` (x, y): (where they go, whether
     they are inside the box). No forward-backward check: on the DeepDeform shirt (20 cm of
@@ -249,7 +252,7 @@ def flow_at(previous_color: np.ndarray, current_color: np.ndarray, window: np.nd
     inside = (local[:, 0] >= 0) & (local[:, 0] <= w - 1) & (local[:, 1] >= 0) & (local[:, 1] <= h - 1)
     maps = np.ascontiguousarray(local.reshape(-1, 1, 2), np.float32)
     moved = cv2.remap(flow, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    target, keep = refine(previous, current, pixels, pixels + moved.reshape(-1, 2), params, previous_depth)
+    target, keep = refine(previous, current, pixels, pixels + moved.reshape(-1, 2), params, previous_depth, prior)
     inside &= keep
     full_h, full_w = window.shape
     inside &= (target[:, 0] >= 0) & (target[:, 0] <= full_w - 1) & (target[:, 1] >= 0) & (target[:, 1] <= full_h - 1)
@@ -257,13 +260,13 @@ def flow_at(previous_color: np.ndarray, current_color: np.ndarray, window: np.nd
 
 
 def flow_pairs(previous_color: np.ndarray, current_color: np.ndarray, previous_valid: np.ndarray,
-               current_valid: np.ndarray, params: FeatureParams, previous_depth: np.ndarray | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
+               current_valid: np.ndarray, params: FeatureParams, previous_depth: np.ndarray | None = None,
+               prior: MotionPrior | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Pixel pairs (x, y) of dense flow on a grid of the previous frame's depth pixels: dense
     correspondences where a surface has too little texture for features (cloth)."""
     pa = grid_pixels(previous_valid, params.flow_stride_px)
     pb, inside = flow_at(previous_color, current_color, np.asarray(previous_valid, bool) | current_valid, pa, params,
-                         previous_depth)
+                         previous_depth, prior)
     return pa[inside], pb[inside]
 
 

@@ -266,7 +266,8 @@ class Tracker:
         self._feature_count = None
         if not self.uses_features:
             return None
-        matches = self.colour.matches(obs, model, field, self.T_camera_to_world)
+        matches = self.colour.matches(obs, model, field, self.T_camera_to_world,
+                                      self.T_camera_to_world @ self._camera_velocity)
         self._feature_count = None if matches is None else len(matches)
         return matches
 

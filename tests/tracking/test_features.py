@@ -206,3 +206,21 @@ def test_parameter_ranges_are_named():
     assert "(0, 1]" in range_problem(FeatureParams(ratio=1.5), "ratio")
     assert "[0, 1]" in range_problem(FeatureParams(min_agreement=-0.1), "min_agreement")
     assert "(0, 256]" in range_problem(FeatureParams(flow_stride_px=0), "flow_stride_px")
+
+
+def test_the_flow_is_primed_by_the_cameras_predicted_motion():
+    """The prior of the flow's patch alignment is the predicted motion from the last camera to
+    this one (points of the last camera in this one's frame)."""
+    from surfelwarp.geometry.se3 import se3_exp
+    from surfelwarp.tracking.colour import ColourMatcher
+
+    matcher = ColourMatcher(INTR)
+    T_last = se3_exp(np.array([0.1, -0.2, 0.05, 0.3, 0.1, -0.4]))
+    assert matcher._prior(T_last, None) is None
+    assert np.allclose(matcher._prior(T_last, T_last.copy()).T_previous_to_current, np.eye(4))
+    step = se3_exp(np.array([0.0, 0.02, 0.0, 0.015, 0.0, 0.001]))         # the camera's last motion
+    prior = matcher._prior(T_last, T_last @ step)
+    point = np.array([0.1, -0.05, 0.9, 1.0])              # seen by the last camera
+    world = T_last @ point
+    assert np.allclose(prior.T_previous_to_current @ point, np.linalg.inv(T_last @ step) @ world)
+    assert prior.intrinsics == INTR

@@ -1,11 +1,13 @@
 """Patch alignment (affine Lucas-Kanade with gain and offset projected out): the compiled kernel
 against its numpy reference, known affine warps, the Jacobian by finite differences, the depth
-mask at an edge, and its error cases."""
+mask at an edge, the motion prior on a bulging surface, and its error cases."""
 import cv2
 import numpy as np
 
-from surfelwarp.tracking.patch_align import (ALIGNED, FAILED, UNALIGNED, _bilinear, _patch, align, align_reference,
-                                             steepest_descent)
+from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.geometry.se3 import se3_exp, se3_log
+from surfelwarp.tracking.patch_align import ALIGNED, FAILED, UNALIGNED, MotionPrior, _patch, align
+from surfelwarp.tracking.patch_reference import _bilinear, align_reference, steepest_descent
 
 
 def texture(h=240, w=320, seed=0):
@@ -128,3 +130,89 @@ def test_plain_patches_cannot_say_and_textured_ones_that_match_nothing_fail():
     assert np.all(status == UNALIGNED) and np.array_equal(moved, pa + 0.5)
     moved, status = align(a, np.roll(a, 40, axis=1), pa, pa + 0.5, 6)       # the match is 40 px away
     assert np.mean(status == FAILED) > 0.9 and np.array_equal(moved[status == FAILED], (pa + 0.5)[status == FAILED])
+
+
+BUMP_CAMERA = Intrinsics(300.0, 300.0, 160.0, 120.0, 320, 240)
+
+
+def bump_pair(height_m=0.03, sigma_px=15.0, shift_m=0.1):
+    """A textured surface 1 m away with a Gaussian bump towards the camera at the image centre,
+    seen before and after the camera moves shift_m to its left: (float images a, b, depth of a,
+    the true displacement of each pixel of a, the motion of a's points into b's camera). The
+    texture is a sum of cosines painted exactly where each pixel of b looks (no resampling)."""
+    rng = np.random.default_rng(1)
+    freq, phase = rng.uniform(-0.6, 0.6, (40, 2)), rng.uniform(0, 2 * np.pi, 40)
+    y, x = np.mgrid[0:240, 0:320].astype(np.float64)
+
+    def paint(u):
+        return 128 + 20 * np.cos(u[..., None] * freq[:, 0] + y[..., None] * freq[:, 1] + phase).sum(-1)
+
+    def displacement(u):       # of a's pixel (u, y): the points move by shift_m along x, in depth z(u, y)
+        z = 1.0 - height_m * np.exp(-((u - 160) ** 2 + (y - 120) ** 2) / (2 * sigma_px ** 2))
+        return BUMP_CAMERA.fx * shift_m / z, z
+
+    seen = x - BUMP_CAMERA.fx * shift_m
+    for _ in range(60):         # the pixel of a that each pixel of b sees: seen + displacement(seen) = x
+        seen = x - displacement(seen)[0]
+    T = np.eye(4)
+    T[0, 3] = shift_m
+    d, z = displacement(x)
+    return paint(x), paint(seen), z, np.stack([d, 0 * d], -1), T
+
+
+def test_motion_prior_follows_the_relief_of_a_bulging_surface():
+    """On the bump's crown the displacement (30 px) is largest at the centre: an affine warp
+    averages it over the patch and falls short; moved first by the prior, the patch lands on the
+    centre's displacement. Without relief (height 0) the prior changes nothing."""
+    yy, xx = np.mgrid[108:133:2, 148:173:2]
+    pa = np.stack([xx.ravel(), yy.ravel()], -1).astype(np.float64)
+    for height, short_by in ((0.03, 0.02), (0.0, None)):
+        a, b, depth, shift, T = bump_pair(height)
+        truth = pa + shift[yy.ravel(), xx.ravel()]
+        plain, status = align(a, b, pa, truth + 0.3, 6, depth, 0.1)
+        primed, primed_status = align(a, b, pa, truth + 0.3, 6, depth, 0.1, prior=MotionPrior(BUMP_CAMERA, T))
+        assert np.all(status == ALIGNED) and np.all(primed_status == ALIGNED)
+        err, primed_err = (plain - truth)[:, 0].mean(), (primed - truth)[:, 0].mean()
+        if short_by is None:
+            assert abs(err) < 1e-4 and abs(primed_err) < 1e-4
+        else:
+            assert err < -short_by, err
+            assert abs(primed_err) < 0.25 * abs(err), (err, primed_err)
+            # twice the motion as prior overshoots: the prior is what moves the patch
+            twice = MotionPrior(BUMP_CAMERA, se3_exp(2 * se3_log(T)))
+            doubled, _ = align(a, b, pa, truth + 0.3, 6, depth, 0.1, prior=twice)
+            assert (doubled - truth)[:, 0].mean() > abs(err) / 2
+
+
+def test_compiled_kernel_with_a_prior_equals_the_numpy_reference():
+    a, b, depth, shift, T = bump_pair()
+    pa = np.vstack([grid(margin=30, step=9), [[1.0, 2.0], [318.5, 238.2]]])
+    start = pa + shift[np.rint(pa[:, 1]).astype(int), np.rint(pa[:, 0]).astype(int)] + 0.4
+    depth = depth.copy()
+    depth[:, :40] = 0.0                              # no depth: no prior there
+    turned = se3_exp(np.array([0.01, -0.02, 0.005, 0.03, 0.0, -0.02])) @ T      # any rigid motion
+    for prior in (MotionPrior(BUMP_CAMERA, T), MotionPrior(BUMP_CAMERA, turned)):
+        moved, status = align(a, b, pa, start, 5, depth, 0.1, prior=prior)
+        ref, ref_status = align_reference(a, b, pa, start, 5, depth, 0.1, prior=prior)
+        assert np.array_equal(status, ref_status) and np.mean(status == ALIGNED) > 0.5
+        assert np.allclose(moved, ref, atol=1e-7), np.abs(moved - ref).max()
+    # without depth the prior cannot say where the patch's pixels go: the plain alignment
+    assert np.array_equal(align(a, b, pa, start, 5, prior=prior)[0], align(a, b, pa, start, 5)[0])
+
+
+def test_a_prior_that_moves_no_pixel_is_not_applied():
+    """A still camera's pose jitters by hundredths of a millimetre from frame to frame: a prior
+    that moves no patch pixel by PRIOR_MIN_PX leaves the alignment as it was without one, to the
+    bit (the primed path samples each pixel on its own and rounds differently)."""
+    a, b, depth, shift, T = bump_pair()
+    pa = grid(margin=30, step=9)
+    start = pa + shift[np.rint(pa[:, 1]).astype(int), np.rint(pa[:, 0]).astype(int)] + 0.4
+    jitter = np.eye(4)
+    jitter[:3, 3] = [2e-5, -1e-5, 3e-5]
+    plain = align(a, b, pa, start, 6, depth, 0.1)
+    for aligned in (align, align_reference):
+        still = aligned(a, b, pa, start, 6, depth, 0.1, prior=MotionPrior(BUMP_CAMERA, jitter))
+        assert np.array_equal(still[1], plain[1]) and np.allclose(still[0], plain[0], rtol=0, atol=1e-7)
+    assert np.array_equal(align(a, b, pa, start, 6, depth, 0.1, prior=MotionPrior(BUMP_CAMERA, jitter))[0], plain[0])
+    moved = align(a, b, pa, start, 6, depth, 0.1, prior=MotionPrior(BUMP_CAMERA, T))[0]
+    assert not np.allclose(moved, plain[0], rtol=0, atol=1e-3)         # a real motion does move them
