@@ -190,8 +190,9 @@ def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window,
         result[0], result[1], result[2] = bx, by, UNALIGNED
         return
     H = _project_out(SD, w, Tn)
-    dx, dy = np.zeros(S), np.zeros(S)
-    shifted = len(prior) > 0 and _prior_shifts(depth, ax, ay, ox, oy, w, zc, prior, dx, dy)
+    primed = S if len(prior) > 0 else 0          # no prior: no per-sample shifts to hold
+    dx, dy = np.zeros(primed), np.zeros(primed)
+    shifted = primed > 0 and _prior_shifts(depth, ax, ay, ox, oy, w, zc, prior, dx, dy)
     # translation alone first (its 2x2 block), then the whole affine warp from there: from a
     # start a pixel off, the six parameters at once can settle in a wrong minimum; where the
     # affine warp does not converge, the shift alone is the answer
@@ -226,7 +227,8 @@ def _predicted(x, y, z, prior):
 def _prior_shifts(depth, ax, ay, ox, oy, w, zc, prior, dx, dy):
     """(dx, dy) of each patch sample on the centre's surface (w > 0): its displacement under the
     prior less the centre's, the part of the motion an affine warp cannot follow (the depth's
-    relief). False (all 0) where the centre has no depth or leaves the view."""
+    relief). False (all 0) where the centre has no depth or leaves the view, or where no sample
+    moves by PRIOR_MIN_PX (a still camera's pose jitters by a tenth of a millimetre a frame)."""
     if zc <= 0:
         return False
     cu, cv = _predicted(ax, ay, zc, prior)
