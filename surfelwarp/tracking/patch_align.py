@@ -192,7 +192,7 @@ def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window,
     H = _project_out(SD, w, Tn)
     primed = S if len(prior) > 0 else 0          # no prior: no per-sample shifts to hold
     dx, dy = np.zeros(primed), np.zeros(primed)
-    shifted = primed > 0 and _prior_shifts(depth, ax, ay, ox, oy, w, zc, prior, dx, dy)
+    shifted = _prior_shifts(depth, ax, ay, ox, oy, w, zc, prior, dx, dy) if primed > 0 else 0.0
     # translation alone first (its 2x2 block), then the whole affine warp from there: from a
     # start a pixel off, the six parameters at once can settle in a wrong minimum; where the
     # affine warp does not converge, the shift alone is the answer
@@ -227,13 +227,14 @@ def _predicted(x, y, z, prior):
 def _prior_shifts(depth, ax, ay, ox, oy, w, zc, prior, dx, dy):
     """(dx, dy) of each patch sample on the centre's surface (w > 0): its displacement under the
     prior less the centre's, the part of the motion an affine warp cannot follow (the depth's
-    relief). False (all 0) where the centre has no depth or leaves the view, or where no sample
-    moves by PRIOR_MIN_PX (a still camera's pose jitters by a tenth of a millimetre a frame)."""
+    relief). Returns the largest |dx| or |dy|; 0 (all shifts 0) where the centre has no depth or
+    leaves the view, or where no sample moves by PRIOR_MIN_PX (a still camera's pose jitters by
+    a tenth of a millimetre a frame)."""
     if zc <= 0:
-        return False
+        return 0.0
     cu, cv = _predicted(ax, ay, zc, prior)
     if not (np.isfinite(cu) and np.isfinite(cv)):
-        return False
+        return 0.0
     largest = 0.0
     for s in range(len(ox)):
         if w[s] > 0:
@@ -245,8 +246,8 @@ def _prior_shifts(depth, ax, ay, ox, oy, w, zc, prior, dx, dy):
     if largest < PRIOR_MIN_PX:
         dx[:] = 0.0
         dy[:] = 0.0
-        return False
-    return True
+        return 0.0
+    return largest
 
 
 @numba.njit(cache=True, inline="always")
@@ -268,8 +269,8 @@ def _sample_shifted(current, tx, ty, a00, a01, a10, a11, ox, oy, dx, dy, reach, 
 @numba.njit(cache=True, fastmath=SUMS)
 def _iterate(current, w, Tn, SD, Hinv, affine, tx, ty, bx, by, ox, oy, iters, max_shift_px, shifted, dx, dy):
     """Inverse compositional steps from the shift (tx, ty); (tx, ty, last step), the step inf
-    where the warp degenerates or runs farther than max_shift_px from (bx, by). `shifted`: each
-    sample s also moved by (dx[s], dy[s]) (the prior's, _prior_shifts)."""
+    where the warp degenerates or runs farther than max_shift_px from (bx, by). `shifted` > 0:
+    each sample s also moved by (dx[s], dy[s]), at most `shifted` px (the prior's, _prior_shifts)."""
     S = len(ox)
     a00, a01, a10, a11 = 1.0, 0.0, 0.0, 1.0
     I = np.empty(S)
@@ -280,10 +281,9 @@ def _iterate(current, w, Tn, SD, Hinv, affine, tx, ty, bx, by, ox, oy, iters, ma
     r = np.zeros(6)
     h, wd = current.shape
     reach = max(np.abs(ox).max(), np.abs(oy).max())
-    extra = max(np.abs(dx).max(), np.abs(dy).max()) if shifted else 0.0
     for _ in range(iters):
-        if shifted:
-            _sample_shifted(current, tx, ty, a00, a01, a10, a11, ox, oy, dx, dy, reach, extra, I)
+        if shifted > 0:
+            _sample_shifted(current, tx, ty, a00, a01, a10, a11, ox, oy, dx, dy, reach, shifted, I)
         elif affine:
             # Away from the border (the warped patch's box inside), no sample needs clamping:
             # the same values as _sample's, a third faster.
