@@ -21,6 +21,11 @@ def skew(w: np.ndarray) -> np.ndarray:
     return out
 
 
+def point_jacobian(p: np.ndarray) -> np.ndarray:
+    """(n, 3, 6) derivative of exp(xi) p by the twist xi = (omega, v) at xi = 0: (-[p]x, I)."""
+    return np.concatenate([-skew(p), np.broadcast_to(np.eye(3), (len(p), 3, 3))], axis=-1)
+
+
 def _coefficients(theta: np.ndarray):
     """sin(t)/t, (1-cos t)/t^2, (t - sin t)/t^3 with Taylor series near zero."""
     t2 = theta * theta
@@ -119,6 +124,41 @@ def fit_rigid(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None
     T[:3, :3] = Vt.T @ D @ U.T
     T[:3, 3] = cb - T[:3, :3] @ ca
     return T
+
+
+MIN_INFORMATION = 1e-6     # fit_rigid_informed's floor, relative to the best-measured direction
+
+
+def fit_rigid_informed(source: np.ndarray, target: np.ndarray, information: np.ndarray,
+                       iterations: int = 5) -> np.ndarray:
+    """The rigid T minimising sum (T a - b)^T S (T a - b) over (N, 3) point pairs, each with an
+    (N, 3, 3) positive semi-definite S: a pair counts along the directions its S measures only
+    (a point that depth sees on a plane: along the plane's normal). A motion that no S measures
+    (every point on one plane, sliding along it) is not in T, which fit_rigid, with S = w I,
+    would take whole. Gauss-Newton from the identity about the information-weighted centroid;
+    directions measured below MIN_INFORMATION of the best one count as unmeasured."""
+    a, b = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    S = np.asarray(information, np.float64)
+    w = np.trace(S, axis1=1, axis2=2)
+    C = np.eye(4)
+    if w.sum() > 0:
+        C[:3, 3] = w @ a / w.sum()
+    a, b = a - C[:3, 3], b - C[:3, 3]
+    T = np.eye(4)
+    for _ in range(iterations):
+        p = transform_points(T, a)
+        J = point_jacobian(p)
+        SJ = np.matmul(S, J).reshape(-1, 6)
+        H, g = J.reshape(-1, 6).T @ SJ, SJ.T @ (b - p).reshape(-1)
+        values, vectors = np.linalg.eigh(H)
+        measured = values > MIN_INFORMATION * values[-1]
+        if not measured.any():
+            break
+        xi = vectors[:, measured] @ (vectors[:, measured].T @ g / values[measured])
+        T = se3_exp(xi) @ T
+        if np.abs(xi).max() < 1e-6:      # converging quadratically: the next step would be ~1e-12
+            break
+    return C @ T @ invert(C)
 
 
 def transform_surfels(T: np.ndarray, points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

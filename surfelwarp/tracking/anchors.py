@@ -111,15 +111,21 @@ def deviation_m(transforms: np.ndarray, rest: np.ndarray, sigma_m: float) -> np.
     return np.linalg.norm(r, axis=-1).max(axis=1)
 
 
-def seen_directions(num_nodes: int, knn: np.ndarray, weights: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(M, 3, 3) per node, the directions its depth pairs measure: the skinning-weighted sum of
-    the pairs' n n^T over the pairs' nodes knn (C, K) and weights (C, K), normals (C, 3), scaled
-    to a largest eigenvalue of 1 (a plane: n n^T; a cylinder: all but its axis; a ball: the
-    identity); 0 for a node without pairs."""
+def node_information(num_nodes: int, knn: np.ndarray, weights: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) per node, what its depth pairs measure of its motion: the skinning-weighted sum
+    of the pairs' n n^T over the pairs' nodes knn (C, K) and weights (C, K), normals (C, 3) (its
+    trace: the pairs' skinning weight on the node)."""
     S = np.zeros((num_nodes, 9))
     _sum_outer(np.ascontiguousarray(knn, np.int64), np.ascontiguousarray(weights, np.float64),
                np.ascontiguousarray(normals, np.float64), S)
-    S = S.reshape(-1, 3, 3)
+    return S.reshape(-1, 3, 3)
+
+
+def seen_directions(num_nodes: int, knn: np.ndarray, weights: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) per node, the directions its depth pairs measure: node_information scaled to a
+    largest eigenvalue of 1 (a plane: n n^T; a cylinder: all but its axis; a ball: the
+    identity); 0 for a node without pairs."""
+    S = node_information(num_nodes, knn, weights, normals)
     top = np.linalg.eigvalsh(S)[:, -1]
     return S / np.where(top > 0, top, 1.0)[:, None, None]
 

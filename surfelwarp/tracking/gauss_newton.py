@@ -24,7 +24,7 @@ from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.dq_kernels import blend_apply
 from surfelwarp.geometry.dual_quaternion import _components
 from surfelwarp.tracking.alignment import Alignment, measure
-from surfelwarp.tracking.anchors import AnchorTerm
+from surfelwarp.tracking.anchors import AnchorTerm, node_information
 from surfelwarp.tracking.assembly import BlockPattern, NormalEquations, dense_point_blocks
 from surfelwarp.tracking.association import DepthTargets, associate_components
 from surfelwarp.tracking.blend_jacobian import twist_dual_quaternions
@@ -120,7 +120,8 @@ class NonRigidResult:
     energies: tuple[float, ...]    # total E at the start of every iteration, then the final one
     converged: bool                # ended on a tiny update or energy decrease (not on the
                                    # iteration limit, an energy rise or too few pairs)
-    node_support: np.ndarray | None = None   # (M,) skinning weight of the final pairs per node
+    node_information: np.ndarray | None = None   # (M, 3, 3) what the final depth pairs measure of
+                                                 # each node's motion (anchors.node_information)
     released: np.ndarray | None = None       # (M,) anchored nodes this solve set free (anchors.py)
     silhouette_points: int = 0               # model points the camera saw through, at the result
     alignment: Alignment | None = None       # model and depth explaining each other, at the result
@@ -320,14 +321,15 @@ def _result(solve: Solve, current: Iterate, free: np.ndarray, steps: int, energi
     total = sum(by_term.values())
     energies.append(total)
     pb, pairs = solve.problem, final.pairs
-    support = np.bincount(pb.knn[pairs.index].ravel(), pb.weights[pairs.index].ravel(), minlength=field.num_nodes)
+    information = node_information(field.num_nodes, pb.knn[pairs.index], pb.weights[pairs.index], pairs.normals)
     vertex = np.asarray(pb.depth_vertex_map)
     alignment = measure(final.live.T, final.live_normals.T, pb.T_camera_to_world, vertex[..., 2], vertex,
                         pb.depth_valid, pb.intrinsics)
     return field, NonRigidResult(
         iterations=steps, energy=total,
         reg_energy=float(np.sum(reg_penalty(reg_residuals(field), pb.params.reg_huber_m)[0])),
-        correspondences=len(pairs.index), energies=tuple(energies), converged=converged, node_support=support,
+        correspondences=len(pairs.index), energies=tuple(energies), converged=converged,
+        node_information=information,
         released=anchors.released if anchors else None, silhouette_points=len(seen[1]) if seen else 0,
         alignment=alignment, lu_fallbacks=fallbacks + (anchors.lu_fallbacks if anchors else 0),
         term_energies=by_term)

@@ -20,7 +20,7 @@ import numba
 import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.geometry.se3 import invert, se3_exp, skew
+from surfelwarp.geometry.se3 import invert, point_jacobian, se3_exp
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.degeneracy import MOMENTS, HeldDirections, add_pair, information_from
 
@@ -296,11 +296,6 @@ def rigid_icp(model_vertex_map: np.ndarray, model_normal_map: np.ndarray, T_mode
         return RigidResult(T_init, total, float("nan"), float("nan"), count, False, held)
     energy = squares / count
     return RigidResult(T, total, energy, float(np.sqrt(energy)), count, settled, held)
-
-
-def point_jacobian(p: np.ndarray) -> np.ndarray:
-    """(n, 3, 6) derivative of exp(xi) p by the twist xi = (omega, v) at xi = 0: (-[p]x, I)."""
-    return np.concatenate([-skew(p), np.broadcast_to(np.eye(3), (len(p), 3, 3))], axis=-1)
 
 
 def along_held(T: np.ndarray, held: HeldDirections, pairs: PointPairs, iterations: int = 5,

@@ -16,7 +16,7 @@ import numpy as np
 from surfelwarp.deform.hierarchy import Hierarchy, HierarchyParams, build_hierarchy, with_hierarchy
 from surfelwarp.deform.warp_field import WarpField, to_local, warp
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.geometry.se3 import fit_rigid, invert, transform_points
+from surfelwarp.geometry.se3 import fit_rigid, fit_rigid_informed, invert, transform_points
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.anchors import AnchorParams, NodeAnchors, follow_motion, node_depth_m
 from surfelwarp.tracking.degeneracy import HeldDirections
@@ -46,8 +46,9 @@ class TrackingParams:
     # 1.9 mm mean EPE over 90 frames without).
     predict_motion: bool = False
     factor_rigid_motion: bool = True   # move the warp field's common rigid motion into the pose
-    factor_by_support: bool = True     # that motion fitted to the nodes the depth constrains,
-                                       # weighted by their pairs' skinning (False: every node alike)
+    factor_by_support: bool = True     # that motion fitted to the nodes the depth constrains, each
+                                       # along the directions its pairs measure (their normals'
+                                       # n n^T, skinning-weighted; False: every node alike, whole)
     # DynamicFusion's deformation tree as the regulariser (deform/hierarchy.py): in place of SurfelWarp's
     # k-nearest-node graph (Eq. 10), or on top of it with hierarchy.keep_graph; off: the graph.
     hierarchy: HierarchyParams = field(default_factory=HierarchyParams)
@@ -98,19 +99,25 @@ def warped_matches(matches: AnchoredMatches, surfels: SurfelSet, field: WarpFiel
 def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None,
                         rest_points: np.ndarray | None = None,
                         held: HeldDirections | None = None) -> tuple[WarpField, np.ndarray]:
-    """Split W = A o W' with A the rigid motion best fitting the nodes' displacements
-    (weighted by node_weights, if given) from rest_points (default: the nodes themselves),
-    without its components along the `held` directions (they stay in the field: the camera does
-    not move where the data cannot say).
+    """Split W = A o W' with A the rigid motion best fitting the nodes' displacements from
+    rest_points (default: the nodes themselves), weighted by node_weights: (M,) weights, or
+    (M, 3, 3) information (each node counts along the directions its data measures,
+    se3.fit_rigid_informed); without its components along the `held` directions (they stay
+    in the field: the camera does not move where the data cannot say).
 
     DQB commutes with a common left factor, so W' = A^-1 o W exactly. Without this, rigid
     tracking error that the non-rigid solve absorbs would stay in the warp field forever and
     the camera pose would drift from the composite motion that is actually tracked. Weighted by
     data support, A is the seen nodes' common motion even when most nodes are out of view (a
     room); fitted to every node alike it is only part of it, and the rest stays in their
-    transforms.
+    transforms. Weighted by information, a node's slide along its surface, which its depth
+    does not see (the regulariser's pull, a colour pair's), stays in the field too.
     """
-    A = fit_rigid(field.nodes if rest_points is None else rest_points, field.live_nodes(), node_weights)
+    source = field.nodes if rest_points is None else rest_points
+    if node_weights is not None and np.ndim(node_weights) == 3:
+        A = fit_rigid_informed(source, field.live_nodes(), node_weights)
+    else:
+        A = fit_rigid(source, field.live_nodes(), node_weights)
     if held is not None:
         A = held.project(A)
     G = invert(A) @ field.global_transforms()
@@ -356,13 +363,15 @@ class Tracker:
             and self.anchors.nodes is field.nodes else None
         if p.factor_rigid_motion and self._camera_moves:
             support, rest = None, None
-            if p.factor_by_support and result is not None and result.node_support is not None:
-                support = result.node_support[:field.num_nodes]
-                # a Kabsch fit needs three nodes not on a line; fewer supported: every node alike
-                support = support if np.count_nonzero(support) >= 3 else None
+            if p.factor_by_support and result is not None and result.node_information is not None:
+                support = result.node_information[:field.num_nodes]
+                weight = np.trace(support, axis1=1, axis2=2)
+                # a fit needs three nodes not on a line; fewer supported: every node alike
+                support = support if np.count_nonzero(weight) >= 3 else None
             if anchors is not None and support is not None:
-                held = support * ~anchors.released
-                if np.count_nonzero(held) >= 3 and held.sum() >= 0.5 * support.sum():
+                held = np.where(anchors.released[:, None, None], 0.0, support)
+                held_weight = np.trace(held, axis1=1, axis2=2)
+                if np.count_nonzero(held_weight) >= 3 and held_weight.sum() >= 0.5 * weight.sum():
                     # The motion that returns the anchored nodes to rest is the camera's; fitted
                     # to all, the moving parts would drag the pose and the anchored nodes along.
                     support, rest = held, field.nodes + anchors.rest[:, :3, 3]

@@ -217,6 +217,19 @@ def test_recovers_a_bend(problem):
     assert res.data_rmse_m < 0.001
 
 
+def test_the_solve_says_what_its_depth_pairs_measure_of_each_node(problem):
+    """node_information: each node's skinning-weighted sum of its pairs' n n^T. Its trace sums
+    to the pairs' weights (each pair's weights sum to 1); on the bumpy sheet (depth normals
+    near the view axis) a node's pairs measure mostly one direction, near the sheet's normal."""
+    _, result = problem.solve()
+    S = result.node_information
+    assert S.shape == (problem.field.num_nodes, 3, 3)
+    np.testing.assert_allclose(np.trace(S, axis1=1, axis2=2).sum(), result.correspondences, rtol=1e-6)
+    values, vectors = np.linalg.eigh(S[np.trace(S, axis1=1, axis2=2) > 0])
+    assert np.median(values[:, 0] / values[:, 2]) < 0.02
+    assert np.median(np.abs(vectors[:, :, 2] @ T_CW[:3, 2])) > 0.9
+
+
 def test_tukey_still_recovers_the_bend(problem):
     """Residuals start far beyond the Tukey cut-off; the regulariser drags those parts along.
     Without the free-space term: with it, the sheet's edges, which the bend pulls in, are led

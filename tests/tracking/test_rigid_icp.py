@@ -7,8 +7,7 @@ from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import invert, se3_exp, so3_log
 from surfelwarp.io.sequence import open_sequence
 from surfelwarp.preprocess import PreprocessParams, preprocess
-from surfelwarp.tracking.rigid_icp import (PointPairs, RigidParams, _weighted_median, along_held, halved,
-                                           point_jacobian, rigid_icp)
+from surfelwarp.tracking.rigid_icp import PointPairs, RigidParams, _weighted_median, along_held, halved, rigid_icp
 
 from conftest import shared_data
 
@@ -153,17 +152,6 @@ def test_a_wall_alone_holds_the_pose_and_colour_pairs_move_it():
                        pairs=PointPairs(camera, world, np.full(len(world), 10.0)))
     assert plain.degenerate_directions == 0
     np.testing.assert_array_equal(paired.T_camera_to_world, plain.T_camera_to_world)
-
-
-def test_point_jacobian_matches_finite_differences():
-    p = np.random.default_rng(2).normal(size=(5, 3))
-    J, eps = point_jacobian(p), 1e-6
-    for k in range(6):
-        xi = np.zeros(6)
-        xi[k] = eps
-        plus, minus = se3_exp(xi), se3_exp(-xi)
-        numeric = ((p @ plus[:3, :3].T + plus[:3, 3]) - (p @ minus[:3, :3].T + minus[:3, 3])) / (2 * eps)
-        np.testing.assert_allclose(J[:, :, k], numeric, atol=1e-8)
 
 
 def test_along_held_without_usable_pairs_keeps_the_pose():

@@ -17,6 +17,7 @@ from surfelwarp.preprocess import preprocess
 from surfelwarp.tracking.gauss_newton import NonRigidResult
 from surfelwarp.tracking.features import AnchoredMatches
 from surfelwarp.tracking.free_space import FreeSpace
+from surfelwarp.tracking.anchors import AnchorParams
 from surfelwarp.tracking.tracker import SurfelSet, Tracker, TrackingParams, factor_rigid_motion
 
 from conftest import shared_data, sphere_depth_mm
@@ -107,6 +108,48 @@ def test_factoring_fits_the_common_motion_to_the_supported_nodes():
     partial, _ = factor_rigid_motion(field)
     left = np.linalg.norm(partial.live_nodes()[seen] - nodes[seen], axis=1)
     assert left.mean() > 3e-3
+
+
+def test_factoring_by_information_leaves_a_slide_the_depth_cannot_see_in_the_field():
+    """Nodes on a wall (z = 1 m) that depth sees along its normal, all moved by the camera's
+    error A (a tilt and a step towards the wall) and slid 1 cm along the wall besides (the
+    regulariser's or a colour pair's pull: depth does not see it). Fitted by information the
+    pose takes A and the slide stays in the nodes; fitted by support it takes the slide too."""
+    rng = np.random.default_rng(3)
+    nodes = WarpField.from_points(np.column_stack([rng.uniform(-0.6, 0.6, (4000, 2)), np.ones(4000)])).nodes
+    centre = np.eye(4)
+    centre[2, 3] = 1.0          # the tilt about the wall's middle: the nodes do not slide by it
+    A = centre @ se3_exp(np.array([0.01, -0.02, 0.0, 0.0, 0.0, 0.01])) @ invert(centre)
+    slide = se3_exp(np.array([0.0, 0.0, 0.0, 0.01, 0.0, 0.0]))
+    field = WarpField.identity(nodes).with_transforms(to_local(np.tile(A @ slide, (len(nodes), 1, 1)), nodes))
+    support = rng.uniform(0.5, 2.0, len(nodes))
+    wall = np.array([0.0, 0.0, 1.0])
+    informed, B = factor_rigid_motion(field, support[:, None, None] * np.outer(wall, wall))
+    # What the depth sees is in the pose: B moves each node as far along the normal as it moved.
+    np.testing.assert_allclose((transform_points(B, nodes) - field.live_nodes()) @ wall, 0.0, atol=1e-6)
+    left = informed.live_nodes() - nodes
+    np.testing.assert_allclose(np.median(left[:, 0]), 0.01, atol=5e-4)   # the slide is not
+    _, C = factor_rigid_motion(field, support)
+    np.testing.assert_allclose(C, A @ slide, atol=1e-9)
+    assert abs((B - C)[0, 3]) > 5e-3
+
+
+def test_the_tracker_factors_by_what_the_solves_depth_pairs_measure():
+    """Tracker.factor fits the pose's share to the solve's node information: the wall's nodes,
+    slid along it, leave the camera where it was; only their step towards the wall moves it."""
+    intr = Intrinsics(150.0, 150.0, 80.0, 60.0, 160, 120)
+    tracker = Tracker(intr, TrackingParams(anchor=AnchorParams(weight=0.0)))
+    empty = np.zeros((120, 160, 3), np.float32)
+    tracker.rigid(empty, empty, preprocess(sphere_depth_mm(0, (160, 120), 150.0) / 1000.0, intr, 0, 0))
+    rng = np.random.default_rng(8)
+    nodes = WarpField.from_points(np.column_stack([rng.uniform(-0.6, 0.6, (3000, 2)), np.ones(3000)])).nodes
+    moved = se3_exp(np.array([0.0, 0.0, 0.0, 0.01, -0.02, 0.005]))      # slid 2.2 cm, 5 mm nearer
+    field = WarpField.identity(nodes).with_transforms(to_local(np.tile(moved, (len(nodes), 1, 1)), nodes))
+    result = NonRigidResult(iterations=1, energy=0.0, reg_energy=0.0, correspondences=len(nodes), energies=(),
+                            converged=True, node_information=np.tile(np.diag([0.0, 0.0, 1.0]), (len(nodes), 1, 1)))
+    tracker.factor(field, result)
+    np.testing.assert_allclose(tracker.T_camera_to_world[:3, 3], [0.0, 0.0, -0.005], atol=1e-6)
+    np.testing.assert_allclose(tracker.T_camera_to_world[:3, :3], np.eye(3), atol=1e-6)
 
 
 def test_rigid_icp_without_pairs_keeps_the_pose_and_says_so():
