@@ -178,7 +178,10 @@ def test_rest_anchors_keep_a_static_scene_from_drifting(tmp_path):
     term, appending and fusion as in the paper) the field slowly bends along the wide bends
     the graph barely resists, and the pose drifts with it. Rest anchors (the default) hold the
     nodes nothing moves; DynamicFusion's tree on top of the graph
-    (tracking.hierarchy.keep_graph) resists the bends."""
+    (tracking.hierarchy.keep_graph) resists the bends. Since the pose takes from the field only
+    what the depth pairs measure (Tracker.factor), the graph's pose drifts half as far as
+    before (ATE 0.62 -> 0.29 cm; anchored 0.21 -> 0.16, tree 0.16 -> 0.15), so the anchors'
+    and the tree's gain over it fell from 3-4x to ~2x."""
     seq = synth.generate("orbit", tmp_path / "seq", frames=40, size=(320, 240))
     # Depth alone, the subject here: colour matches carry a viewpoint bias of their own (a
     # still life seen 10 degrees apart: 0.3-0.5 mm) that releases anchors (README, Colour).
@@ -201,5 +204,6 @@ def test_rest_anchors_keep_a_static_scene_from_drifting(tmp_path):
         else:
             assert "released_nodes" not in frames[-1]
     print("orbit, 40 frames, ATE: " + ", ".join(f"{k} {v:.2f} cm" for k, v in ate.items()))
-    assert ate["anchored"] < 0.35 and ate["anchored"] < 0.5 * ate["graph"]
-    assert ate["tree"] < 0.35 and ate["tree"] < 0.5 * ate["graph"]
+    assert ate["graph"] < 0.45          # 0.62 with the field's common motion fitted whole
+    assert ate["anchored"] < 0.25 and ate["anchored"] < 0.75 * ate["graph"]
+    assert ate["tree"] < 0.25 and ate["tree"] < 0.75 * ate["graph"]
