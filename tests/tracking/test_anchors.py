@@ -144,6 +144,45 @@ def test_the_solve_releases_moving_nodes_and_holds_the_still_ones():
     assert prob.error(held).mean() > 5 * err.mean()
 
 
+def test_the_release_step_is_solved_to_its_own_tolerance(monkeypatch):
+    """The release test's free step is solved to release_step_rtol, not the solve's pcg_rtol:
+    fewer PCG iterations; the moving nodes released and the still ones held as at the full
+    tolerance, a few at the threshold apart, and the bend followed as closely."""
+    import surfelwarp.tracking.terms.rest_anchors as rest_anchors
+    solve_system, calls = rest_anchors.solve_system, []
+
+    def recording(system, damping, linear_solver, rtol, max_iterations):
+        step = solve_system(system, damping, linear_solver, rtol, max_iterations)
+        calls.append((rtol, step.iterations))
+        return step
+
+    monkeypatch.setattr(rest_anchors, "solve_system", recording)
+    prob = Problem(moved=half_bend_seen_off_pose)
+    m = prob.field.num_nodes
+    release = np.full(m, 2 * axial_noise_sigma_m(1.0))
+    runs = {}
+    for rtol in (None, 1e-2):
+        anchor = AnchorTerm(np.ones(m), prob.field.transforms.copy(), release, release_step_rtol=rtol)
+        calls.clear()
+        runs[rtol] = solve_nonrigid(prob.field, prob.points, prob.normals, prob.knn, prob.weights, *prob.maps,
+                                    INTR, T_CW, anchor=anchor) + (calls[0],)
+    (full, res_full, (rtol_full, it_full)), (loose, res_loose, (rtol_loose, it_loose)) = runs[None], runs[1e-2]
+    print(f"release step: {it_full} PCG iterations at {rtol_full}, {it_loose} at {rtol_loose}; "
+          f"{res_full.released.sum()} and {res_loose.released.sum()} of {m} released")
+    nodes = prob.field.nodes.astype(np.float64)
+    moving, still = np.linalg.norm(half_bend(nodes) - nodes, axis=1) > 0.01, nodes[:, 0] > 0.1
+    apart = res_loose.released != res_full.released
+    print(f"  {apart.sum()} released at one tolerance only; error {prob.error(full).mean() * 1000:.3f} and "
+          f"{prob.error(loose).mean() * 1000:.3f} mm")
+    assert rtol_full == 1e-4 and rtol_loose == 1e-2
+    assert it_loose < 0.5 * it_full
+    assert res_loose.released[moving].all() and not res_loose.released[still].any()
+    assert apart.sum() <= 0.02 * m and not apart[moving | still].any()
+    assert prob.error(loose).mean() < 1.05 * prob.error(full).mean()
+    term = NodeAnchors.at_rest(prob.field).term(AnchorParams(release_step_rtol=0.03), np.ones(m), m)
+    assert term.release_step_rtol == 0.03
+
+
 def test_seen_directions_of_a_plane_a_cylinder_and_a_ball():
     """Known answers: pairs on a plane see its normal only, on a cylinder all but its axis, on a
     ball every direction; a node without pairs sees none. The release distance then counts a

@@ -149,7 +149,7 @@ class RestAnchorTerm(BaseTerm):
 def build(problem: Problem) -> RestAnchorTerm | None:
     if problem.anchor is None:
         return None
-    p = problem.params
+    p, rtol = problem.params, problem.anchor.release_step_rtol
+    rtol = p.pcg_rtol if rtol is None else rtol
     return RestAnchorTerm(problem.anchor, problem.knn, problem.weights,
-                          lambda system: solve_system(system, p.damping, p.linear_solver, p.pcg_rtol,
-                                                      p.pcg_max_iterations))
+                          lambda system: solve_system(system, p.damping, p.linear_solver, rtol, p.pcg_max_iterations))
