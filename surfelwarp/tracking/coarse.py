@@ -73,6 +73,7 @@ class CoarseFactor:
     U: tuple
     perm_r: np.ndarray
     perm_c: np.ndarray
+    bordered: bool = False      # the border is a cell of it
 
     def arrays(self) -> tuple:
         """What the compiled PCG's correction takes (its coarse argument)."""
@@ -120,7 +121,8 @@ def factor(space: CoarseSpace, upper: np.ndarray, lo: np.ndarray, hi: np.ndarray
         T.setdiag(0.0)
         T.eliminate_zeros()
         parts.append((T.indptr.astype(np.int64), T.indices.astype(np.int64), T.data, 1.0 / diag))
-    return CoarseFactor(space, parts[0], parts[1], lu.perm_r.astype(np.int64), lu.perm_c.astype(np.int64))
+    return CoarseFactor(space, parts[0], parts[1], lu.perm_r.astype(np.int64), lu.perm_c.astype(np.int64),
+                        B is not None)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -33,7 +33,7 @@ from surfelwarp.tracking.features import AnchoredMatches
 from surfelwarp.tracking.free_space import FreeSpace, SilhouetteParams
 from surfelwarp.tracking.linear import LINEAR_SOLVERS, solve_system
 from surfelwarp.tracking.terms import ROBUST, Iterate, Problem, build_terms, known_terms
-from surfelwarp.tracking.terms.regulariser import reg_penalty, reg_residuals, regulariser_blocks
+from surfelwarp.tracking.terms.regulariser import reg_energy, regulariser_blocks
 
 
 @dataclass(frozen=True)
@@ -187,6 +187,7 @@ class Solve:
         self.terms = build_terms(p.terms, problem)
         self.pattern = None
         self.coarse = None
+        self.coarse_factor = None
 
     def at(self, field: WarpField, pairs=None, state=None, border_step=None) -> Iterate:
         """The iterate of `field` (its warp state given or computed), associated afresh unless
@@ -227,8 +228,12 @@ class Solve:
         return sum(term.linearize(at, system) for term in self.terms), system
 
     def step(self, system: NormalEquations):
+        """The iteration's step, preconditioned with the solve's first coarse factor."""
         p = self.problem.params
-        return solve_system(system, p.damping, p.linear_solver, p.pcg_rtol, p.pcg_max_iterations)
+        step = solve_system(system, p.damping, p.linear_solver, p.pcg_rtol, p.pcg_max_iterations, self.coarse_factor)
+        if self.coarse_factor is None:
+            self.coarse_factor = step.coarse
+        return step
 
 
 def _motion(field: WarpField, stepped: WarpField, xi: np.ndarray) -> float:
@@ -307,13 +312,25 @@ def solve_nonrigid(field: WarpField, ref_points: np.ndarray, ref_normals: np.nda
     return _result(solve, current, free, steps, energies, converged, fallbacks)
 
 
+def _finished(solve: Solve, current: Iterate, field: WarpField) -> Iterate:
+    """The iterate of the finished field: the current one's warp and pairs if finishing moved
+    no node that skins a solved surfel (the rest anchors move only the nodes held out of the
+    solve), else warped and associated afresh."""
+    if field is current.field:
+        return current
+    moved = np.any(field.transforms != current.field.transforms, axis=(1, 2))
+    if moved[solve.problem.knn].any():
+        return solve.at(field)
+    return replace(current, field=field, dq=field.dual_quaternions())
+
+
 def _result(solve: Solve, current: Iterate, free: np.ndarray, steps: int, energies: list, converged: bool,
             fallbacks: int) -> tuple[WarpField, NonRigidResult]:
     """The returned field (after every term's finish) and the summary, freshly associated."""
     field = current.field
     for term in solve.terms:
         field = term.finish(field, free)
-    final = current if field is current.field else solve.at(field)
+    final = _finished(solve, current, field)
     named = {term.name: term for term in solve.terms}
     anchors, free_space = named.get("rest_anchors"), named.get("free_space")
     seen = free_space.seen_through(final) if free_space else None      # its energy and points at once
@@ -327,7 +344,7 @@ def _result(solve: Solve, current: Iterate, free: np.ndarray, steps: int, energi
                         pb.depth_valid, pb.intrinsics)
     return field, NonRigidResult(
         iterations=steps, energy=total,
-        reg_energy=float(np.sum(reg_penalty(reg_residuals(field), pb.params.reg_huber_m)[0])),
+        reg_energy=reg_energy(field, pb.params.reg_huber_m),
         correspondences=len(pairs.index), energies=tuple(energies), converged=converged,
         node_information=information,
         released=anchors.released if anchors else None, silhouette_points=len(seen[1]) if seen else 0,

@@ -2,6 +2,7 @@
 the solve under a pose error, nodes out of the solve following the common motion, settling,
 following the field's nodes, and factoring the camera motion out of the anchored nodes."""
 import numpy as np
+import pytest
 
 from surfelwarp.tracking.anchors import (AnchorParams, AnchorTerm, NodeAnchors, anchor_residuals, deviation_m,
                                          follow_motion, seen_deviation_m, seen_directions)
@@ -183,6 +184,33 @@ def test_the_release_step_is_solved_to_its_own_tolerance(monkeypatch):
     assert term.release_step_rtol == 0.03
 
 
+def test_a_solve_factors_its_coarse_level_once_per_kind_of_system(monkeypatch):
+    """The PCG's coarse factor is made once for the release test's free step and once for the
+    bordered steps, however many Gauss-Newton iterations follow (the first is reused); the
+    field as without the coarse level (block-Jacobi alone): each PCG stops at 1e-4, and over six
+    iterations two nodes' turns differ by 3e-5."""
+    import surfelwarp.tracking.gauss_newton as gauss_newton
+    import surfelwarp.tracking.linear as linear
+    made = []
+    factor = linear.factor
+    monkeypatch.setattr(linear, "factor", lambda *a: made.append(a[5] is not None) or factor(*a))
+    monkeypatch.setattr(gauss_newton, "MIN_FREE_NODES", 100)
+    prob = Problem(moved=half_bend_seen_off_pose)
+    m = prob.field.num_nodes
+    anchor = AnchorTerm(np.ones(m), prob.field.transforms.copy(), np.full(m, 2 * axial_noise_sigma_m(1.0)))
+    fields = {}
+    for radii in (6.0, 0.0):
+        params = gauss_newton.NonRigidParams(pcg_cell_radii=radii)
+        fields[radii], res = solve_nonrigid(prob.field, prob.points, prob.normals, prob.knn, prob.weights,
+                                            *prob.maps, INTR, T_CW, params=params, anchor=anchor)
+        if radii:
+            print(f"{res.iterations} Gauss-Newton iterations, coarse factors made: {made}")
+            assert res.iterations >= 3 and made == [False, True]
+    assert made == [False, True]
+    np.testing.assert_allclose(fields[6.0].transforms, fields[0.0].transforms, atol=1e-4)
+    assert abs(prob.error(fields[6.0]).mean() - prob.error(fields[0.0]).mean()) < 0.01 * prob.error(fields[0.0]).mean()
+
+
 def test_seen_directions_of_a_plane_a_cylinder_and_a_ball():
     """Known answers: pairs on a plane see its normal only, on a cylinder all but its axis, on a
     ball every direction; a node without pairs sees none. The release distance then counts a
@@ -260,6 +288,18 @@ def test_nodes_outside_the_solve_follow_the_common_motion():
           f" the released one within {loose_err[0] * 1000:.2f} mm")
     assert not res.released.any()
     assert rest_err.max() < 3e-4 and loose_err[0] < 3e-4
+    # The summary is of the returned field: the nodes that moved last skin no solved surfel, so
+    # the solve's last warp and pairs stand; associated afresh, the same figures to the bit.
+    import surfelwarp.tracking.gauss_newton as gauss_newton
+    fresh = lambda solve, current, field: solve.at(field)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(gauss_newton, "_finished", fresh)
+        again, res_fresh = solve_nonrigid(field.with_transforms(start), prob.points, prob.normals, knn, weights,
+                                          *prob.maps, INTR, T_CW, anchor=anchor)
+    np.testing.assert_array_equal(again.transforms, solved.transforms)
+    assert (res.energy, res.correspondences, res.alignment) == (res_fresh.energy, res_fresh.correspondences,
+                                                                res_fresh.alignment)
+    np.testing.assert_array_equal(res.node_information, res_fresh.node_information)
 
 
 def test_released_nodes_settle_after_staying_put():

@@ -139,3 +139,36 @@ def test_singular_coarse_system_leaves_block_jacobi():
     s.upper[s.pattern.diag] = np.eye(6)
     step = solve_system(s, 1e-6, "pcg")
     assert not step.lu_fallback and np.allclose(step.xi, -s.gradient / (1 + 1e-6), rtol=1e-5)
+
+
+def test_an_earlier_coarse_factor_preconditions_a_changed_system(monkeypatch):
+    """A step's coarse factor (Step.coarse) reused on the next system of the same cells and
+    border: no new factor, the same solution, a few iterations more at most; a factor of
+    other cells or without the border is not used."""
+    import dataclasses
+    import surfelwarp.tracking.linear as linear
+    made = []
+    monkeypatch.setattr(linear, "factor", lambda *a: made.append(1) or factor(*a))
+    _, first = system(bordered=True)
+    rng = np.random.default_rng(5)
+    m = first.pattern.num_nodes
+    J = rng.normal(size=(m, 6, 6))
+    upper = first.upper.copy()
+    upper[first.pattern.diag] += 2e-3 * J @ J.transpose(0, 2, 1)       # the next iteration's data
+    changed = dataclasses.replace(first, upper=upper, gradient=first.gradient + rng.normal(size=(m, 6)))
+    earlier = solve_system(first, 1e-6, "pcg")
+    assert earlier.coarse is not None and earlier.coarse.bordered and len(made) == 1
+    fresh = solve_system(changed, 1e-6, "pcg", pcg_rtol=1e-10, pcg_max_iterations=5000)
+    reused = solve_system(changed, 1e-6, "pcg", pcg_rtol=1e-10, pcg_max_iterations=5000, coarse=earlier.coarse)
+    direct = solve_system(changed, 1e-6, "direct")
+    print(f"iterations to 1e-10: a fresh factor {fresh.iterations}, the earlier one {reused.iterations}")
+    assert len(made) == 2 and reused.coarse is earlier.coarse
+    scale = np.abs(direct.xi).max()
+    assert np.abs(reused.xi - direct.xi).max() < 1e-6 * scale and np.abs(reused.zeta - direct.zeta).max() < 1e-6 * scale
+    assert reused.iterations <= 1.2 * fresh.iterations + 2
+    unbordered = solve_system(dataclasses.replace(first, border=None), 1e-6, "pcg")
+    assert len(made) == 3 and not unbordered.coarse.bordered
+    assert solve_system(changed, 1e-6, "pcg", coarse=unbordered.coarse).coarse is not unbordered.coarse
+    _, other_cells = system(bordered=True)
+    assert solve_system(other_cells, 1e-6, "pcg", coarse=earlier.coarse).coarse is not earlier.coarse
+    assert len(made) == 5

@@ -89,23 +89,11 @@ def _add_regulariser(p, L, edge_j, edge_i, slots, flip, lam, huber_m, upper, gra
     a, t, r = np.empty(3), np.empty(3), np.empty(3)
     for e in range(len(edge_j)):
         j, i = edge_j[e], edge_i[e]
-        for c in range(3):
-            a[c] = L[i, c, 3]
-            for d in range(3):
-                a[c] += L[i, c, d] * (p[j, d] - p[i, d])
-        for c in range(3):
-            t[c] = L[j, c, 3]
-        r2 = 0.0
-        for c in range(3):
-            r[c] = p[i, c] + a[c] - p[j, c] - t[c]
-            r2 += r[c] * r[c]
+        r2 = _edge(p, L, j, i, a, t, r)
         w = lam
+        total += _penalty(r2, huber_m)
         if huber_m > 0 and r2 > huber_m * huber_m:
-            n = np.sqrt(r2)
-            w = lam * huber_m / n
-            total += 2 * huber_m * n - huber_m * huber_m
-        else:
-            total += r2
+            w = lam * huber_m / np.sqrt(r2)
         _add_pair(upper[slots[0, e]], a, a, w)
         _add_pair(upper[slots[1, e]], t, t, w)
         if flip[e]:
@@ -115,6 +103,49 @@ def _add_regulariser(p, L, edge_j, edge_i, slots, flip, lam, huber_m, upper, gra
         _add_gradient(grad[i], a, r, w)
         _add_gradient(grad[j], t, r, -w)
     return total
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _edge(p, L, j, i, a, t, r):
+    """Edge (j, i) into a = L_i (p_j - p_i), t = t_j and its residual r; returns |r|^2."""
+    for c in range(3):
+        a[c] = L[i, c, 3]
+        for d in range(3):
+            a[c] += L[i, c, d] * (p[j, d] - p[i, d])
+    for c in range(3):
+        t[c] = L[j, c, 3]
+    r2 = 0.0
+    for c in range(3):
+        r[c] = p[i, c] + a[c] - p[j, c] - t[c]
+        r2 += r[c] * r[c]
+    return r2
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _penalty(r2, huber_m):
+    if huber_m > 0 and r2 > huber_m * huber_m:
+        return 2 * huber_m * np.sqrt(r2) - huber_m * huber_m
+    return r2
+
+
+@numba.njit(cache=True, nogil=True)
+def _penalty_sum(p, L, graph, huber_m):
+    total = 0.0
+    a, t, r = np.empty(3), np.empty(3), np.empty(3)
+    for j in range(graph.shape[0]):
+        for s in range(graph.shape[1]):
+            i = graph[j, s]
+            if i != j:
+                total += _penalty(_edge(p, L, j, i, a, t, r), huber_m)
+    return total
+
+
+def reg_energy(field: WarpField, huber_m: float = 0.0) -> float:
+    """sum_j sum_i psi(|T_i p_j - T_j p_j|) in one compiled pass (the energy a Gauss-Newton
+    iteration's candidates are judged by): numpy's edge arrays took ~9 ms a call on 7-Scenes'
+    9k nodes, a few calls a frame."""
+    return float(_penalty_sum(field.nodes.astype(np.float64), np.ascontiguousarray(field.transforms),
+                              np.ascontiguousarray(field.graph), float(huber_m)))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -154,7 +185,7 @@ class RegulariserTerm(BaseTerm):
         self.lambda_reg, self.huber_m = lambda_reg, huber_m
 
     def energy(self, at: Iterate) -> float:
-        return self.lambda_reg * float(np.sum(reg_penalty(reg_residuals(at.field), self.huber_m)[0]))
+        return self.lambda_reg * reg_energy(at.field, self.huber_m)
 
     def linearize(self, at: Iterate, system: NormalEquations) -> float:
         # regulariser_blocks summed straight into the system's blocks (compiled): a room's

@@ -7,7 +7,7 @@ import pytest
 from surfelwarp.deform.warp_field import WarpField, WarpFieldParams, apply_update
 from surfelwarp.tracking.assembly import BlockPattern, NormalEquations
 from surfelwarp.tracking.terms import Iterate
-from surfelwarp.tracking.terms.regulariser import RegulariserTerm, reg_residuals, regulariser_blocks
+from surfelwarp.tracking.terms.regulariser import RegulariserTerm, reg_energy, reg_penalty, reg_residuals, regulariser_blocks
 
 
 def bent_field(seed: int = 12) -> WarpField:
@@ -48,6 +48,17 @@ def test_compiled_linearize_adds_the_reference_blocks_into_the_system(huber):
         assert energy == pytest.approx(3.0 * np.sum(reg_residuals(field) ** 2), rel=1e-12)
     else:   # the reweighted blocks are not the plain ones
         assert np.abs(blocks - regulariser_blocks(field, pattern)[0]).max() > 0.1 * np.abs(blocks).max()
+
+
+@pytest.mark.parametrize("huber", ["none", "median"])
+def test_compiled_energy_equals_the_numpy_penalties(huber):
+    field = bent_field()
+    huber_m = 0.0 if huber == "none" else float(np.median(edge_lengths(field)))
+    reference = np.sum(reg_penalty(reg_residuals(field), huber_m)[0])
+    assert reg_energy(field, huber_m) == pytest.approx(reference, rel=1e-12)
+    assert RegulariserTerm(3.0, huber_m).energy(iterate(field)) == pytest.approx(3.0 * reference, rel=1e-12)
+    if huber == "median":
+        assert reg_energy(field, huber_m) < 0.9 * reg_energy(field)
 
 
 def test_huber_energy_of_a_stretched_edge():
