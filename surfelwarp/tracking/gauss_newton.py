@@ -326,7 +326,8 @@ def _finished(solve: Solve, current: Iterate, field: WarpField) -> Iterate:
 
 def _result(solve: Solve, current: Iterate, free: np.ndarray, steps: int, energies: list, converged: bool,
             fallbacks: int) -> tuple[WarpField, NonRigidResult]:
-    """The returned field (after every term's finish) and the summary, freshly associated."""
+    """The returned field (after every term's finish) and the summary of it: its solved
+    surfels' warp and depth pairs (_finished), its energies by term."""
     field = current.field
     for term in solve.terms:
         field = term.finish(field, free)
