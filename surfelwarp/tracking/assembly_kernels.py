@@ -118,3 +118,35 @@ def _point_sums(sel, signed, R, r, w, knn, slots, double, pair_s, pair_t, compac
                 out = e[node]
                 for a in range(row_8):
                     out[a] += g * row[a]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def add_gradient(g, u, r, scale):
+    """g += scale * (u x r, r)."""
+    g[0] += scale * (u[1] * r[2] - u[2] * r[1])
+    g[1] += scale * (u[2] * r[0] - u[0] * r[2])
+    g[2] += scale * (u[0] * r[1] - u[1] * r[0])
+    for c in range(3):
+        g[3 + c] += scale * r[c]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def add_pair(block, u, v, scale):
+    """block += scale * [[(u.v) I - v u^T, [u]x], [-[v]x, I]]."""
+    uv = u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+    for r in range(3):
+        for c in range(3):
+            block[r, c] += scale * ((uv if r == c else 0.0) - v[r] * u[c])
+        block[3 + r, 3 + r] += scale
+    block[0, 4] -= scale * u[2]
+    block[0, 5] += scale * u[1]
+    block[1, 3] += scale * u[2]
+    block[1, 5] -= scale * u[0]
+    block[2, 3] -= scale * u[1]
+    block[2, 4] += scale * u[0]
+    block[3, 1] += scale * v[2]
+    block[3, 2] -= scale * v[1]
+    block[4, 0] -= scale * v[2]
+    block[4, 2] += scale * v[0]
+    block[5, 0] += scale * v[1]
+    block[5, 1] -= scale * v[0]

@@ -9,7 +9,7 @@ from surfelwarp.tracking.anchors import (AnchorParams, AnchorTerm, NodeAnchors, 
 from surfelwarp.deform.warp_field import WarpField, apply_update, extend, skin, to_global, to_local
 from surfelwarp.geometry.camera import axial_noise_sigma_m
 from surfelwarp.geometry.se3 import se3_exp
-from surfelwarp.tracking.terms.rest_anchors import anchor_energy, anchor_terms, turn_about
+from surfelwarp.tracking.terms.rest_anchors import anchor_energy, anchor_terms, anchor_terms_reference, turn_about
 from surfelwarp.tracking.tracker import factor_rigid_motion
 
 from test_gauss_newton import INTR, T_CW, Problem, bend, solve_nonrigid
@@ -49,6 +49,25 @@ def test_anchor_blocks_and_gradient_match_finite_differences():
     xi[3, 4] = h
     dE = (anchor_energy(apply_update(field, xi), term) - anchor_energy(apply_update(field, -xi), term)) / (2 * h)
     assert abs(0.5 * dE - g[3, 4]) < 1e-6 * np.abs(g).max()
+
+
+@pytest.mark.parametrize("bordered", [False, True])
+def test_compiled_anchor_terms_equal_the_numpy_reference(bordered):
+    """The compiled sums against anchor_terms_reference (which the finite-difference tests
+    also pass): the nodes' blocks and gradient and the border's, a third of the nodes free."""
+    rng = np.random.default_rng(7)
+    field = apply_update(sheet_field(), rng.normal(size=(len(sheet_field().nodes), 6)) * 0.05)
+    m = field.num_nodes
+    rest = apply_update(field, rng.normal(size=(m, 6)) * 0.02).transforms
+    term = AnchorTerm(rng.uniform(0.5, 2.0, m) * (rng.random(m) > 1 / 3), rest, np.full(m, np.inf))
+    G, center = se3_exp(np.array([0.01, -0.02, 0.005, 0.003, 0.0, -0.004])), np.array([0.05, -0.1, 1.0])
+    args = (field, term, G, center if bordered else None)
+    blocks, g, border = anchor_terms(*args)
+    ref_blocks, ref_g, ref_border = anchor_terms_reference(*args)
+    assert (term.mu == 0).sum() > m / 5 and np.all(blocks[term.mu == 0] == 0)
+    for got, want in [(blocks, ref_blocks), (g, ref_g)] + (list(zip(border, ref_border)) if bordered else []):
+        assert got.shape == want.shape and np.abs(got - want).max() <= 1e-12 * np.abs(want).max()
+    assert (border is None) == (not bordered)
 
 
 def test_common_motion_terms_match_finite_differences():

@@ -15,6 +15,7 @@ import numpy as np
 from surfelwarp.deform.warp_field import WarpField
 from surfelwarp.geometry.se3 import skew
 from surfelwarp.tracking.assembly import BlockPattern, NormalEquations, blocks_from_parts, pair_block_parts
+from surfelwarp.tracking.assembly_kernels import add_gradient, add_pair
 from surfelwarp.tracking.terms import BaseTerm, Iterate, Problem, register, robust
 
 
@@ -94,14 +95,14 @@ def _add_regulariser(p, L, edge_j, edge_i, slots, flip, lam, huber_m, upper, gra
         total += _penalty(r2, huber_m)
         if huber_m > 0 and r2 > huber_m * huber_m:
             w = lam * huber_m / np.sqrt(r2)
-        _add_pair(upper[slots[0, e]], a, a, w)
-        _add_pair(upper[slots[1, e]], t, t, w)
+        add_pair(upper[slots[0, e]], a, a, w)
+        add_pair(upper[slots[1, e]], t, t, w)
         if flip[e]:
-            _add_pair(upper[slots[2, e]], t, a, -w)
+            add_pair(upper[slots[2, e]], t, a, -w)
         else:
-            _add_pair(upper[slots[2, e]], a, t, -w)
-        _add_gradient(grad[i], a, r, w)
-        _add_gradient(grad[j], t, r, -w)
+            add_pair(upper[slots[2, e]], a, t, -w)
+        add_gradient(grad[i], a, r, w)
+        add_gradient(grad[j], t, r, -w)
     return total
 
 
@@ -146,38 +147,6 @@ def reg_energy(field: WarpField, huber_m: float = 0.0) -> float:
     9k nodes, a few calls a frame."""
     return float(_penalty_sum(field.nodes.astype(np.float64), np.ascontiguousarray(field.transforms),
                               np.ascontiguousarray(field.graph), float(huber_m)))
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _add_gradient(g, u, r, scale):
-    """g += scale * (u x r, r)."""
-    g[0] += scale * (u[1] * r[2] - u[2] * r[1])
-    g[1] += scale * (u[2] * r[0] - u[0] * r[2])
-    g[2] += scale * (u[0] * r[1] - u[1] * r[0])
-    for c in range(3):
-        g[3 + c] += scale * r[c]
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _add_pair(block, u, v, scale):
-    """block += scale * [[(u.v) I - v u^T, [u]x], [-[v]x, I]]."""
-    uv = u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
-    for r in range(3):
-        for c in range(3):
-            block[r, c] += scale * ((uv if r == c else 0.0) - v[r] * u[c])
-        block[3 + r, 3 + r] += scale
-    block[0, 4] -= scale * u[2]
-    block[0, 5] += scale * u[1]
-    block[1, 3] += scale * u[2]
-    block[1, 5] -= scale * u[0]
-    block[2, 3] -= scale * u[1]
-    block[2, 4] += scale * u[0]
-    block[3, 1] += scale * v[2]
-    block[3, 2] -= scale * v[1]
-    block[4, 0] -= scale * v[2]
-    block[4, 2] += scale * v[0]
-    block[5, 0] += scale * v[1]
-    block[5, 1] -= scale * v[0]
 
 
 class RegulariserTerm(BaseTerm):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numba
 import numpy as np
 
 from surfelwarp.deform.warp_field import WarpField, apply_update
@@ -17,6 +18,7 @@ from surfelwarp.geometry.se3 import se3_exp
 from surfelwarp.tracking.anchors import (AnchorTerm, anchor_residuals, common_motion, deviation_m, follow_motion,
                                          seen_deviation_m, seen_directions)
 from surfelwarp.tracking.assembly import Border, NormalEquations, blocks_from_parts, pair_block_parts
+from surfelwarp.tracking.assembly_kernels import add_gradient, add_pair
 from surfelwarp.tracking.linear import solve_system
 from surfelwarp.tracking.terms import BaseTerm, Iterate, Problem, register
 
@@ -28,7 +30,38 @@ def anchor_terms(field: WarpField, anchor: AnchorTerm, G: np.ndarray = np.eye(4)
     a `center`, the border of G's twist zeta (rotation about center, G <- exp(zeta) G): the
     blocks (M, 6, 6) coupling each node's twist to zeta, zeta's own block (6, 6) and its
     gradient (6,); else None. The rest point q = G Rest_j y_a moves by [-[q - c]x, I] zeta and
-    enters the residual with a minus sign."""
+    enters the residual with a minus sign. Summed in compiled code (anchor_terms_reference is
+    the numpy form): numpy's per-point block parts took ~17 ms a call on 9k nodes."""
+    res, z = anchor_residuals(field.transforms, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
+    m, bordered = field.num_nodes, center is not None
+    q = field.nodes[:, None, :] + z - res - center if bordered else z
+    blocks, g = np.zeros((m, 6, 6)), np.zeros((m, 6))
+    coupling, own, gz = np.zeros((m if bordered else 0, 6, 6)), np.zeros((6, 6)), np.zeros(6)
+    _anchor_sums(np.ascontiguousarray(anchor.mu, np.float64), z, res, np.ascontiguousarray(q, np.float64), bordered,
+                 blocks, g, coupling, own, gz)
+    return blocks, g, ((coupling, own, gz) if bordered else None)
+
+
+@numba.njit(cache=True, nogil=True)
+def _anchor_sums(mu, z, res, q, bordered, blocks, g, coupling, own, gz):
+    """Per anchored node and anchor point a: blocks += mu pair(z, z), g += mu (z x r, r) and,
+    bordered, coupling -= mu pair(z, q), own += mu pair(q, q), gz -= mu (q x r, r)."""
+    for j in range(len(mu)):
+        w = mu[j]
+        if w == 0.0:
+            continue
+        for a in range(z.shape[1]):
+            add_pair(blocks[j], z[j, a], z[j, a], w)
+            add_gradient(g[j], z[j, a], res[j, a], w)
+            if bordered:
+                add_pair(coupling[j], z[j, a], q[j, a], -w)
+                add_pair(own, q[j, a], q[j, a], w)
+                add_gradient(gz, q[j, a], res[j, a], -w)
+
+
+def anchor_terms_reference(field: WarpField, anchor: AnchorTerm, G: np.ndarray = np.eye(4),
+                           center: np.ndarray | None = None):
+    """anchor_terms in numpy, the form the tests check the compiled sums with."""
     res, z = anchor_residuals(field.transforms, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
     m = field.num_nodes
     mu = anchor.mu[:, None, None]
