@@ -3,7 +3,8 @@ correspondence's 8x8 product summed into its node pairs' slots, and the slots' b
 A correspondence has G rows (normals (G, n, 3), residuals (G, n)), all on its surfel's blend and
 summed into one 8x8 product before its node pairs': a colour feature's three axes cost one pass
 over the pairs, not three. assembly.point_blocks_reference is the numpy form the tests compare
-them with (one row a correspondence)."""
+them with (one row a correspondence). Also the kernels of one 6x6 block J_u^T J_v and gradient
+(add_pair, add_gradient) that the regulariser's and the rest anchors' compiled sums share."""
 from __future__ import annotations
 
 import numba
