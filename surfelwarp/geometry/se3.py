@@ -129,6 +129,14 @@ def fit_rigid(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None
 MIN_INFORMATION = 1e-6     # fit_rigid_informed's floor, relative to the best-measured direction
 
 
+def solve_measured(H: np.ndarray, g: np.ndarray, min_ratio: float) -> np.ndarray:
+    """H^-1 g within the eigen-directions of the symmetric H above min_ratio of its largest
+    eigenvalue; zero along the others (what the data does not measure is not moved)."""
+    values, vectors = np.linalg.eigh(H)
+    keep = values > min_ratio * max(values[-1], 0.0)
+    return vectors[:, keep] @ (vectors[:, keep].T @ g / values[keep])
+
+
 def fit_rigid_informed(source: np.ndarray, target: np.ndarray, information: np.ndarray,
                        iterations: int = 5) -> np.ndarray:
     """The rigid T minimising sum (T a - b)^T S (T a - b) over (N, 3) point pairs, each with an
@@ -149,12 +157,7 @@ def fit_rigid_informed(source: np.ndarray, target: np.ndarray, information: np.n
         p = transform_points(T, a)
         J = point_jacobian(p)
         SJ = np.matmul(S, J).reshape(-1, 6)
-        H, g = J.reshape(-1, 6).T @ SJ, SJ.T @ (b - p).reshape(-1)
-        values, vectors = np.linalg.eigh(H)
-        measured = values > MIN_INFORMATION * values[-1]
-        if not measured.any():
-            break
-        xi = vectors[:, measured] @ (vectors[:, measured].T @ g / values[measured])
+        xi = solve_measured(J.reshape(-1, 6).T @ SJ, SJ.T @ (b - p).reshape(-1), MIN_INFORMATION)
         T = se3_exp(xi) @ T
         if np.abs(xi).max() < 1e-6:      # converging quadratically: the next step would be ~1e-12
             break

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from surfelwarp.geometry.se3 import se3_exp, se3_log, skew
+from surfelwarp.geometry.se3 import se3_exp, se3_log, skew, solve_measured
 
 
 @dataclass(frozen=True)
@@ -70,9 +70,7 @@ class RigidInformation:
     def solve(self, g: np.ndarray, min_eigen_ratio: float) -> np.ndarray:
         """The Gauss-Newton step -H^-1 g (g local) along the directions above min_eigen_ratio
         only, as a world twist."""
-        lam, V = np.linalg.eigh(0.5 * (self.H + self.H.T))
-        keep = lam > min_eigen_ratio * max(lam[-1], 0.0)
-        return self.frame.to_world(-V[:, keep] @ ((V[:, keep].T @ g) / lam[keep]))
+        return self.frame.to_world(-solve_measured(0.5 * (self.H + self.H.T), g, min_eigen_ratio))
 
 
 @dataclass(frozen=True)

@@ -357,25 +357,25 @@ class Tracker:
 
     def factor(self, field: WarpField, result: NonRigidResult | None = None) -> WarpField:
         """Move the field's common rigid motion into the pose (if enabled); ends the frame.
-        `result` (the solve's) gives the node support the motion is fitted to."""
+        `result` (the solve's) gives the node information the motion is fitted to."""
         p = self.params
         anchors = self.anchors if p.anchor.weight > 0 and self.anchors is not None \
             and self.anchors.nodes is field.nodes else None
         if p.factor_rigid_motion and self._camera_moves:
-            support, rest = None, None
+            information, rest = None, None
             if p.factor_by_support and result is not None and result.node_information is not None:
-                support = result.node_information[:field.num_nodes]
-                weight = np.trace(support, axis1=1, axis2=2)
+                information = result.node_information[:field.num_nodes]
+                weight = np.trace(information, axis1=1, axis2=2)
                 # a fit needs three nodes not on a line; fewer supported: every node alike
-                support = support if np.count_nonzero(weight) >= 3 else None
-            if anchors is not None and support is not None:
-                held = np.where(anchors.released[:, None, None], 0.0, support)
+                information = information if np.count_nonzero(weight) >= 3 else None
+            if anchors is not None and information is not None:
+                held = np.where(anchors.released[:, None, None], 0.0, information)
                 held_weight = np.trace(held, axis1=1, axis2=2)
                 if np.count_nonzero(held_weight) >= 3 and held_weight.sum() >= 0.5 * weight.sum():
                     # The motion that returns the anchored nodes to rest is the camera's; fitted
                     # to all, the moving parts would drag the pose and the anchored nodes along.
-                    support, rest = held, field.nodes + anchors.rest[:, :3, 3]
-            field, A = factor_rigid_motion(field, support, rest, self._held)
+                    information, rest = held, field.nodes + anchors.rest[:, :3, 3]
+            field, A = factor_rigid_motion(field, information, rest, self._held)
             self.T_camera_to_world = invert(A) @ self.T_camera_to_world
         if anchors is not None:
             self.anchors = anchors.settle(field, node_depth_m(field, self.T_camera_to_world), p.anchor)
