@@ -87,6 +87,15 @@ def _gather(index, positions, normals):
     return vertex, normal
 
 
+def drawn_rows(index: np.ndarray, positions: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W, 3) float32 maps of the rows of (N, 3) positions and normals that a map's `index`
+    shows, zeros where it is empty: the solver maps in the frame those rows are in (world, from
+    the live surfels drawn), where maps_to_world would move the camera-frame maps back, which
+    costs a rounding and ~3 ms a 640x480 frame (for `touch`, 6 % of its frame)."""
+    return _gather(np.ascontiguousarray(index), np.ascontiguousarray(positions, np.float32),
+                   np.ascontiguousarray(normals, np.float32))
+
+
 def maps_to_world(maps: SolverMaps, T_camera_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Solver maps in world coordinates, zero where no surfel was drawn (as rigid ICP expects)."""
     R = np.ascontiguousarray(T_camera_to_world[:3, :3].T, np.float32)

@@ -49,3 +49,30 @@ def _stillness_map(index, knn, weights, node, out):
 def _weighed(weights, knn, node, i, s):
     j = knn[i, s]
     return weights[i, s] * (node[j] if j < len(node) else np.float32(1.0))
+
+
+def rigid_weight_map(stillness: np.ndarray, floor: float) -> tuple[np.ndarray | None, float]:
+    """(rigid ICP's (H, W) float32 weight of each model pixel, the still share): floor + (1 -
+    floor) * stillness, 0 where the map is empty (NaN), and the mean stillness of the shown
+    pixels; (None, 1.0) where every shown pixel is still. One compiled pass: numpy's nanmin,
+    nanmean and weighted where took ~1.8 ms on a 640x480 map (4 % of a `touch` frame)."""
+    s = np.ascontiguousarray(stillness, np.float32)
+    out = np.empty(s.shape, np.float32)
+    share, moving = _weight_map(s.reshape(-1), np.float32(floor), np.float32(1.0 - floor), out.reshape(-1))
+    return (out, share) if moving else (None, 1.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _weight_map(s, floor, scale, out):
+    """numpy's float32 arithmetic for each weight (floor + scale * s); the share summed in float64."""
+    total, count, moving = 0.0, 0, False
+    for p in range(len(s)):
+        x = s[p]
+        if np.isnan(x):
+            out[p] = np.float32(0.0)
+            continue
+        out[p] = floor + scale * x
+        total += x
+        count += 1
+        moving |= x < np.float32(1.0)
+    return (total / count if count else 1.0), moving

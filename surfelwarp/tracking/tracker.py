@@ -26,7 +26,7 @@ from surfelwarp.tracking.ahead import FoundAhead
 from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.gauss_newton import NonRigidParams, NonRigidResult, solve_nonrigid
 from surfelwarp.tracking.rigid_icp import PointPairs, RigidParams, RigidResult, rigid_icp
-from surfelwarp.tracking.stillness import point_stillness, stillness_map
+from surfelwarp.tracking.stillness import point_stillness, rigid_weight_map, stillness_map
 
 
 CAMERAS = ("moving", "static")
@@ -211,8 +211,8 @@ class Tracker:
         return PointPairs(matches.target_points, warped_matches(matches, surfels, field), matches.weights * still)
 
     def _rigid_weight(self, stillness: np.ndarray) -> np.ndarray:
-        """A point's weight in rigid ICP by its stillness (0-1): a released point (0) keeps
-        released_rigid_weight, for the depth maps and the colour pairs alike."""
+        """A colour pair's weight in rigid ICP by its stillness (0-1): a released point (0) keeps
+        released_rigid_weight, as the depth maps' pixels do (stillness.rigid_weight_map)."""
         floor = self.params.released_rigid_weight
         return floor + (1.0 - floor) * stillness
 
@@ -228,10 +228,7 @@ class Tracker:
         self._T_previous = self.T_camera_to_world
         self._T_guess = self.T_camera_to_world @ self._camera_velocity if p.predict_motion else self.T_camera_to_world
         self._scene_motion, self._lu_fallbacks = None, 0
-        weight, share = None, 1.0
-        if stillness is not None and np.nanmin(stillness, initial=1.0) < 1.0:
-            share = float(np.nanmean(stillness))
-            weight = np.where(np.isnan(stillness), 0.0, self._rigid_weight(stillness)).astype(np.float32)
+        weight, share = (None, 1.0) if stillness is None else rigid_weight_map(stillness, p.released_rigid_weight)
         self._held, self._camera_moves = None, p.camera == "moving" and share >= p.min_still_share
         # The colour pairs inform the camera's pose; where it is held, ICP's motion is the
         # scene's, only the non-rigid solve's second start, and they are left to that solve.

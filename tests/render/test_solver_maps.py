@@ -255,3 +255,24 @@ def test_maps_to_world_moves_the_drawn_pixels_and_leaves_the_rest_zero():
     for i in range(3):
         expected[..., i] += np.float32(T[i, 3]) * drawn.astype(np.float32)
     assert world_vertex.tobytes() == expected.tobytes() and world_normal.tobytes() == (normal @ R).tobytes()
+
+
+def test_drawn_rows_are_the_world_rows_of_the_drawn_surfels():
+    """The solver maps in world from the drawn surfels' own world rows: exactly those rows where
+    a surfel shows, zeros elsewhere, and maps_to_world's maps to float32 rounding."""
+    from surfelwarp.geometry.se3 import invert, se3_exp, transform_surfels
+    from surfelwarp.render.solver_maps import drawn_rows, maps_to_world
+    p, n, r = scene()
+    T = se3_exp(np.array([0.2, -0.1, 0.3, 0.5, -1.0, 2.0]))
+    world_p, world_n = transform_surfels(T, p, n)
+    maps = render_solver_maps(*transform_surfels(invert(T), world_p, world_n), r, K)
+    drawn = maps.index >= 0
+    assert 0.2 < drawn.mean() < 0.9
+    vertex, normal = drawn_rows(maps.index, world_p, world_n)
+    assert vertex.dtype == normal.dtype == np.float32 and vertex.shape == maps.vertex.shape
+    assert np.array_equal(vertex[drawn], world_p[maps.index[drawn]])
+    assert np.array_equal(normal[drawn], world_n[maps.index[drawn]])
+    assert not vertex[~drawn].any() and not normal[~drawn].any()
+    moved_vertex, moved_normal = maps_to_world(maps, T)
+    np.testing.assert_allclose(vertex, moved_vertex, atol=2e-6)
+    np.testing.assert_allclose(normal, moved_normal, atol=2e-6)

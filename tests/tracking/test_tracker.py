@@ -243,3 +243,23 @@ def test_the_stillness_map_is_the_stillness_of_the_shown_points(k):
     one = stillness_map(np.zeros((1, 1), np.int32), np.array([[0, 1, 1, 1][:k]], np.int32),
                         np.array([[0.1, 0.2, 0.3, 0.4][:k]], np.float32), np.array([1, 0], np.float32))
     assert one[0, 0] == np.float32(0.1)
+
+
+def test_the_rigid_weight_map_is_numpys_weighting_of_the_shown_pixels():
+    """rigid_weight_map against numpy's float32 weighting, bit for bit, and nanmean's share;
+    no weights where every shown pixel is still (or none is shown)."""
+    from surfelwarp.tracking.stillness import rigid_weight_map
+    rng = np.random.default_rng(5)
+    s = np.where(rng.random((48, 64)) < 0.4, np.nan, rng.random((48, 64))).astype(np.float32)
+    floor = 0.05
+    weight, share = rigid_weight_map(s, floor)
+    want = np.where(np.isnan(s), 0.0, floor + (1.0 - floor) * s).astype(np.float32)
+    assert weight.dtype == np.float32 and np.array_equal(weight, want)
+    assert share == pytest.approx(float(np.nanmean(s)), rel=1e-6)
+    # known answer: one released pixel (0), one still (1), the rest empty
+    two = np.full((2, 3), np.nan, np.float32)
+    two[0, 0], two[1, 2] = 0.0, 1.0
+    weight, share = rigid_weight_map(two, 0.25)
+    assert share == 0.5 and weight[0, 0] == np.float32(0.25) and weight[1, 2] == 1.0 and weight.sum() == 1.25
+    for still in (np.where(np.isnan(s), np.nan, 1.0), np.full((4, 4), np.nan)):
+        assert rigid_weight_map(still.astype(np.float32), floor) == (None, 1.0)

@@ -31,7 +31,7 @@ from surfelwarp.methods.surfelwarp.surfels import SurfelModel
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.render.colour_map import colour_map
 from surfelwarp.render.index_map import render_index_map
-from surfelwarp.render.solver_maps import maps_to_world, render_solver_maps
+from surfelwarp.render.solver_maps import drawn_rows, render_solver_maps
 from surfelwarp.timing import StageTimer
 from surfelwarp.tracking.features import ModelView
 from surfelwarp.tracking.tracker import SurfelSet, Tracker
@@ -114,7 +114,7 @@ class SurfelWarpMethod:
 
         # Rigid alignment of the observation to the rendered model (and the colour pairs), led
         # by its still parts.
-        rigid = self.tracker.rigid(*maps_to_world(maps, self.T_camera_to_world), obs,
+        rigid = self.tracker.rigid(*drawn_rows(maps.index, m.live_position, m.live_normal), obs,
                                    self.tracker.stillness_map(maps.index, m.knn, m.weights),
                                    self.tracker.colour_pairs(matches, surfels, self.field))
         timer.lap("rigid")
