@@ -90,11 +90,8 @@ def _add_regulariser(p, L, edge_j, edge_i, slots, flip, lam, huber_m, upper, gra
     a, t, r = np.empty(3), np.empty(3), np.empty(3)
     for e in range(len(edge_j)):
         j, i = edge_j[e], edge_i[e]
-        r2 = _edge(p, L, j, i, a, t, r)
-        w = lam
-        total += _penalty(r2, huber_m)
-        if huber_m > 0 and r2 > huber_m * huber_m:
-            w = lam * huber_m / np.sqrt(r2)
+        cost, w = _penalty(_edge(p, L, j, i, a, t, r), huber_m, lam)
+        total += cost
         add_pair(upper[slots[0, e]], a, a, w)
         add_pair(upper[slots[1, e]], t, t, w)
         if flip[e]:
@@ -123,10 +120,13 @@ def _edge(p, L, j, i, a, t, r):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _penalty(r2, huber_m):
+def _penalty(r2, huber_m, lam):
+    """An edge's penalty of its squared residual r2 and its IRLS weight, lam scaled by Huber's
+    beyond huber_m."""
     if huber_m > 0 and r2 > huber_m * huber_m:
-        return 2 * huber_m * np.sqrt(r2) - huber_m * huber_m
-    return r2
+        n = np.sqrt(r2)
+        return 2 * huber_m * n - huber_m * huber_m, lam * huber_m / n
+    return r2, lam
 
 
 @numba.njit(cache=True, nogil=True)
@@ -137,7 +137,7 @@ def _penalty_sum(p, L, graph, huber_m):
         for s in range(graph.shape[1]):
             i = graph[j, s]
             if i != j:
-                total += _penalty(_edge(p, L, j, i, a, t, r), huber_m)
+                total += _penalty(_edge(p, L, j, i, a, t, r), huber_m, 1.0)[0]
     return total
 
 
