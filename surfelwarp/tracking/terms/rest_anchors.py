@@ -23,7 +23,13 @@ from surfelwarp.tracking.linear import solve_system
 from surfelwarp.tracking.terms import BaseTerm, Iterate, Problem, register
 
 
-def anchor_terms(field: WarpField, anchor: AnchorTerm, G: np.ndarray = np.eye(4), center: np.ndarray | None = None):
+def _residuals(field: WarpField, anchor: AnchorTerm, G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(anchor residuals, anchor points z) (anchors.anchor_residuals) of the rest followed by G."""
+    return anchor_residuals(field.transforms, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
+
+
+def anchor_terms(field: WarpField, anchor: AnchorTerm, G: np.ndarray = np.eye(4), center: np.ndarray | None = None,
+                 residuals: tuple[np.ndarray, np.ndarray] | None = None):
     """The anchor energy's terms (anchors.py), its rest transforms followed by the common motion G:
     the diagonal blocks (M, 6, 6) and gradient (M, 6) of the node twists (the anchor point
     z = L_j y moves by [-[z]x, I] xi_j under the update, the form pair_blocks sums), and, given
@@ -31,8 +37,9 @@ def anchor_terms(field: WarpField, anchor: AnchorTerm, G: np.ndarray = np.eye(4)
     blocks (M, 6, 6) coupling each node's twist to zeta, zeta's own block (6, 6) and its
     gradient (6,); else None. The rest point q = G Rest_j y_a moves by [-[q - c]x, I] zeta and
     enters the residual with a minus sign. Summed in compiled code (anchor_terms_reference is
-    the numpy form): numpy's per-point block parts took ~17 ms a call on 9k nodes."""
-    res, z = anchor_residuals(field.transforms, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
+    the numpy form): numpy's per-point block parts took ~17 ms a call on 9k nodes. `residuals`:
+    _residuals' of the same field, anchors and G, if already made."""
+    res, z = _residuals(field, anchor, G) if residuals is None else residuals
     m, bordered = field.num_nodes, center is not None
     q = field.nodes[:, None, :] + z - res - center if bordered else z
     blocks, g = np.zeros((m, 6, 6)), np.zeros((m, 6))
@@ -62,7 +69,7 @@ def _anchor_sums(mu, z, res, q, bordered, blocks, g, coupling, own, gz):
 def anchor_terms_reference(field: WarpField, anchor: AnchorTerm, G: np.ndarray = np.eye(4),
                            center: np.ndarray | None = None):
     """anchor_terms in numpy, the form the tests check the compiled sums with."""
-    res, z = anchor_residuals(field.transforms, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
+    res, z = _residuals(field, anchor, G)
     m = field.num_nodes
     mu = anchor.mu[:, None, None]
     blocks = blocks_from_parts(pair_block_parts(z.reshape(-1, 3), z.reshape(-1, 3)).reshape(m, 4, 16).sum(axis=1))
@@ -77,10 +84,11 @@ def anchor_terms_reference(field: WarpField, anchor: AnchorTerm, G: np.ndarray =
     return mu * blocks, anchor.mu[:, None] * g, border
 
 
-def anchor_energy(field: WarpField, anchor: AnchorTerm | None, G: np.ndarray = np.eye(4)) -> float:
+def anchor_energy(field: WarpField, anchor: AnchorTerm | None, G: np.ndarray = np.eye(4),
+                  residuals: tuple[np.ndarray, np.ndarray] | None = None) -> float:
     if anchor is None:
         return 0.0
-    res, _ = anchor_residuals(field.transforms, follow_motion(anchor.rest, field.nodes, G), field.sigma_m)
+    res, _ = _residuals(field, anchor, G) if residuals is None else residuals
     return float(np.sum(anchor.mu * np.sum(res ** 2, axis=(1, 2))))
 
 
@@ -156,14 +164,16 @@ class RestAnchorTerm(BaseTerm):
     def linearize(self, at: Iterate, system: NormalEquations) -> float:
         if self.released is None:
             self._release(at, system)
-        blocks, g, border = anchor_terms(at.field, self.anchor, self.G, self.center)
+        # One set of residuals for the blocks and the energy (~2 ms each on 9k nodes).
+        residuals = _residuals(at.field, self.anchor, self.G)
+        blocks, g, border = anchor_terms(at.field, self.anchor, self.G, self.center, residuals)
         if border is not None:
             B, C, gz = border
             if self.held_rows is not None and len(self.held_rows):
                 C = C + 1e4 * max(np.trace(C) / 6, 1e-12) * self.held_rows.T @ self.held_rows
             system.border = Border(B, C, gz)
         system.add(g, diagonal=blocks)
-        return anchor_energy(at.field, self.anchor, self.G)
+        return anchor_energy(at.field, self.anchor, self.G, residuals)
 
     def finish(self, field: WarpField, free: np.ndarray) -> WarpField:
         """The nodes the solve held out follow the common motion of those it solved, as rigid
