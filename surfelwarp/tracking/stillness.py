@@ -51,10 +51,16 @@ def _weighed(weights, knn, node, i, s):
     return weights[i, s] * (node[j] if j < len(node) else np.float32(1.0))
 
 
+def rigid_weight(stillness: np.ndarray, floor: float) -> np.ndarray:
+    """A point's weight in rigid ICP by its stillness (0-1): a released point (0) keeps `floor`
+    (released_rigid_weight); rigid_weight_map makes the same weights for a model map."""
+    return floor + (1.0 - floor) * stillness
+
+
 def rigid_weight_map(stillness: np.ndarray, floor: float) -> tuple[np.ndarray | None, float]:
-    """(rigid ICP's (H, W) float32 weight of each model pixel, the still share): floor + (1 -
-    floor) * stillness, 0 where the map is empty (NaN), and the mean stillness of the shown
-    pixels; (None, 1.0) where every shown pixel is still. One compiled pass: numpy's nanmin,
+    """(rigid ICP's (H, W) float32 weight of each model pixel, the still share): rigid_weight's,
+    0 where the map is empty (NaN), and the mean stillness of the shown pixels; (None, 1.0)
+    where every shown pixel is still. One compiled pass: numpy's nanmin,
     nanmean and weighted where took 1.1-1.5 ms of a 640x480 map in `touch` runs, this ~0.5."""
     s = np.ascontiguousarray(stillness, np.float32)
     out = np.empty(s.shape, np.float32)

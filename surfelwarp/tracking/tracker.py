@@ -26,7 +26,7 @@ from surfelwarp.tracking.ahead import FoundAhead
 from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.gauss_newton import NonRigidParams, NonRigidResult, solve_nonrigid
 from surfelwarp.tracking.rigid_icp import PointPairs, RigidParams, RigidResult, rigid_icp
-from surfelwarp.tracking.stillness import point_stillness, rigid_weight_map, stillness_map
+from surfelwarp.tracking.stillness import point_stillness, rigid_weight, rigid_weight_map, stillness_map
 
 
 CAMERAS = ("moving", "static")
@@ -207,14 +207,9 @@ class Tracker:
         p = self.params
         if matches is None or len(matches) == 0 or not p.colour_pose:
             return None
-        still = self._rigid_weight(self.stillness(surfels.knn[matches.index], surfels.weights[matches.index]))
+        still = rigid_weight(self.stillness(surfels.knn[matches.index], surfels.weights[matches.index]),
+                             p.released_rigid_weight)
         return PointPairs(matches.target_points, warped_matches(matches, surfels, field), matches.weights * still)
-
-    def _rigid_weight(self, stillness: np.ndarray) -> np.ndarray:
-        """A colour pair's weight in rigid ICP by its stillness (0-1): a released point (0) keeps
-        released_rigid_weight, as the depth maps' pixels do (stillness.rigid_weight_map)."""
-        floor = self.params.released_rigid_weight
-        return floor + (1.0 - floor) * stillness
 
     def rigid(self, model_vertex: np.ndarray, model_normal: np.ndarray, obs: CameraObservation,
               stillness: np.ndarray | None = None,

@@ -248,13 +248,14 @@ def test_the_stillness_map_is_the_stillness_of_the_shown_points(k):
 def test_the_rigid_weight_map_is_numpys_weighting_of_the_shown_pixels():
     """rigid_weight_map against numpy's float32 weighting, bit for bit, and nanmean's share;
     no weights where every shown pixel is still (or none is shown)."""
-    from surfelwarp.tracking.stillness import rigid_weight_map
+    from surfelwarp.tracking.stillness import rigid_weight, rigid_weight_map
     rng = np.random.default_rng(5)
     s = np.where(rng.random((48, 64)) < 0.4, np.nan, rng.random((48, 64))).astype(np.float32)
     floor = 0.05
     weight, share = rigid_weight_map(s, floor)
     want = np.where(np.isnan(s), 0.0, floor + (1.0 - floor) * s).astype(np.float32)
     assert weight.dtype == np.float32 and np.array_equal(weight, want)
+    assert np.array_equal(weight[~np.isnan(s)], rigid_weight(s[~np.isnan(s)], floor))      # the colour pairs' weights
     assert share == pytest.approx(float(np.nanmean(s)), rel=1e-6)
     # known answer: one released pixel (0), one still (1), the rest empty
     two = np.full((2, 3), np.nan, np.float32)
