@@ -20,10 +20,10 @@ from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.ahead import FoundAhead
 from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
                                           ModelView, checked_pairs, checked_points, combine, detect, flow_at,
-                                          flow_pairs, grid_pixels, lift, locally_rigid, match_descriptors,
-                                          match_frames, near_prediction, on_model_map, refine, solved_index,
-                                          surface_depth)
+                                          flow_pairs, grid_pixels, lift, match_descriptors, match_frames,
+                                          near_prediction, on_model_map, refine, solved_index, surface_depth)
 from surfelwarp.tracking.patch_align import MotionPrior
+from surfelwarp.tracking.rigidity import locally_rigid
 
 
 @dataclass(frozen=True)

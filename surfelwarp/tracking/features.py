@@ -7,9 +7,9 @@ a surface has too little texture for features. Each pair's end is refined to sub
 aligning its patch (patch_align.py). Pairs are lifted to 3-D with each frame's
 vertex map (sub-pixel) and kept only near their predicted position (max_motion_m, and a few
 times the median distance from it) and where they agree with their neighbours: a pair whose
-distances to the nearby pairs change by more than a small tolerance breaks local rigidity (a
-locally rigid consensus, in place of a global RANSAC that a deforming scene would fail).
-colour.py puts the survivors on the model; terms/features.py puts them in the solve.
+distances to the nearby pairs change by more than a small tolerance breaks local rigidity
+(rigidity.py). colour.py puts the survivors on the model; terms/features.py puts them in the
+solve.
 """
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ from pykdtree.kdtree import KDTree
 from surfelwarp.geometry.se3 import transform_points
 from surfelwarp.tracking.descriptors import nearest_both_ways
 from surfelwarp.tracking.patch_align import FAILED, MotionPrior, align
+from surfelwarp.tracking.rigidity import locally_rigid
 
 
 DETECTORS = ("sift", "orb")
@@ -182,33 +183,6 @@ def lift(pixels: np.ndarray, vertex_map: np.ndarray, valid: np.ndarray,
     bilinear = (corners[0] * (1 - fx) + corners[1] * fx) * (1 - fy) + (corners[2] * (1 - fx) + corners[3] * fx) * fy
     nearest = pixel_values(pixels, vertex_map).astype(np.float64)
     return np.where(smooth[:, None], bilinear, nearest), pixel_values(pixels, valid)
-
-
-def locally_rigid(previous: np.ndarray, current: np.ndarray, params: FeatureParams) -> np.ndarray:
-    """(n,) bool: matches whose distances to their neighbours (within rigidity_radius_m in the
-    previous frame) mostly keep their length. Twice: the first pass's outliers no longer vote."""
-    previous = np.ascontiguousarray(previous, np.float64)
-    keep = np.ones(len(previous), bool)
-    k = min(9, len(previous))
-    if k < 2:
-        return np.zeros(len(previous), bool)
-    for _ in range(2):
-        idx = np.flatnonzero(keep)
-        if len(idx) < 2:
-            return np.zeros(len(previous), bool)
-        # Neighbours beyond the radius do not vote, so the search stops there (pykdtree: those
-        # come back at an infinite distance). On a twist-limb frame's three calls (1.4k, 1.5k
-        # and 4.1k matches) 26 -> 15 ms against scipy's unbounded search, the same matches.
-        radius = params.rigidity_radius_m
-        dist, nb = KDTree(previous[idx]).query(previous, k=min(k, len(idx)), distance_upper_bound=radius)
-        dist, nb = np.where(np.isfinite(dist), dist, radius), idx[np.minimum(nb, len(idx) - 1)]
-        near = (dist < radius) & (nb != np.arange(len(previous))[:, None])
-        after = np.linalg.norm(current[:, None, :] - current[nb], axis=-1)
-        agree = np.abs(after - dist) <= np.maximum(params.rigidity_tolerance * dist, params.rigidity_floor_m)
-        count = near.sum(axis=1)
-        share = (agree & near).sum(axis=1) / np.maximum(count, 1)
-        keep = (count >= params.min_neighbours) & (share >= params.min_agreement)
-    return keep
 
 
 def match_frames(previous: Keypoints, current: Keypoints, previous_vertex: np.ndarray, previous_valid: np.ndarray,

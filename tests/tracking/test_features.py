@@ -5,12 +5,13 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+from pykdtree.kdtree import KDTree
 
 from surfelwarp.config import range_problem
 from surfelwarp.data_tools.texture import albedo
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.tracking.features import (FeatureParams, checked_pairs, detect, flow_pairs, grey, locally_rigid,
-                                          match_frames, refine)
+from surfelwarp.tracking.features import FeatureParams, checked_pairs, detect, flow_pairs, grey, match_frames, refine
+from surfelwarp.tracking.rigidity import locally_rigid, rigidity_votes
 from surfelwarp.tracking.descriptors import nearest_both_ways
 
 INTR = Intrinsics(500.0, 500.0, 319.5, 239.5, 640, 480)
@@ -144,6 +145,39 @@ def test_matches_without_neighbours_within_the_radius_are_not_kept():
     keep = locally_rigid(previous, current, FeatureParams())
     assert keep[:60].all() and not keep[60:].any()
     assert not locally_rigid(previous[:1], current[:1], FeatureParams()).any()
+
+
+def _votes_reference(dist, nb, idx, current, radius, tolerance, floor_m, min_neighbours, min_agreement):
+    dist, nb = np.where(np.isfinite(dist), dist, radius), idx[np.minimum(nb, len(idx) - 1)]
+    near = (dist < radius) & (nb != np.arange(len(dist))[:, None])
+    after = np.linalg.norm(current[:, None, :] - current[nb], axis=-1)
+    agree = np.abs(after - dist) <= np.maximum(tolerance * dist, floor_m)
+    count = near.sum(axis=1)
+    share = (agree & near).sum(axis=1) / np.maximum(count, 1)
+    return (count >= min_neighbours) & (share >= min_agreement)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_rigidity_votes_are_numpys(dtype):
+    rng = np.random.default_rng(3)
+    previous = rng.uniform(-0.1, 0.1, (3000, 3)) + [0, 0, 1]
+    # moved rigidly, with noise near the tolerance so that votes fall on both sides of it
+    current = (previous + [0.01, 0.0, 0.0] + rng.normal(0, 0.004, previous.shape)).astype(dtype)
+    idx = np.flatnonzero(rng.uniform(size=len(previous)) < 0.8)        # a second pass: some left out
+    radius = 0.02                                                     # some beyond it: inf, len(idx)
+    dist, nb = KDTree(previous[idx]).query(previous, k=9, distance_upper_bound=radius)
+    assert np.isinf(dist).any() and (nb == len(idx)).any()
+    args = (radius, 0.1, 0.006, 2, 0.6)
+    keep = rigidity_votes(dist, nb.astype(np.int64), idx, current, *args)
+    expected = _votes_reference(dist, nb, idx, current, *args)
+    np.testing.assert_array_equal(keep, expected)
+    assert 0.2 < keep.mean() < 0.9, keep.mean()                      # both answers occur
+    # a known answer: three points, one moved off its two neighbours' distances
+    three = np.array([[0, 0, 1], [0.01, 0, 1], [0, 0.01, 1]], float)
+    moved = three + [[0, 0, 0], [0, 0, 0], [0.03, 0, 0]]
+    d, n = KDTree(three).query(three, k=3, distance_upper_bound=0.06)
+    assert rigidity_votes(d, n.astype(np.int64), np.arange(3), three, 0.06, 0.1, 0.006, 2, 0.6).all()
+    assert not rigidity_votes(d, n.astype(np.int64), np.arange(3), moved, 0.06, 0.1, 0.006, 2, 0.6).any()
 
 
 def test_no_texture_and_no_depth_give_no_features():
