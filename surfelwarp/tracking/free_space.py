@@ -36,11 +36,11 @@ import functools
 from dataclasses import dataclass
 
 import cv2
-import numba
 import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.tracking.features import bounding_box
+from surfelwarp.tracking.free_space_kernels import chamfer, row_minima, search, within_reach
 
 
 @dataclass(frozen=True)
@@ -110,9 +110,11 @@ class FreeSpace:
         self._reach = self._reach.reshape(-1)
         self._layers: dict[int, tuple] = {}   # layer -> (r0, r1, c0, c1, its distance transform there)
         # Per pixel the nearest depth within occluder_px, found when a search first needs it
-        # (NaN until then); shared with moved_to's copies, as it does not depend on the pose.
+        # (NaN until then; from the rows' minima where made, _rows_minima); shared with
+        # moved_to's copies, as it does not depend on the pose.
         self._nearer = np.full((h, w), np.nan, np.float32)
         self._ball = _ball_widths(params.occluder_px)
+        self._minima, self._slot, self._box = _rows_minima(self.depth, self.empty, self._ball)
 
     def _pose(self, T_camera_to_world: np.ndarray) -> None:
         T = np.asarray(T_camera_to_world, np.float64)
@@ -178,8 +180,8 @@ class FreeSpace:
         with a distance beyond search_px at one of its pixels."""
         out = np.empty((len(rows), 4), np.float32)
         p = self.params
-        _search(self.depth, self.empty, self._nearer, self._ball, rows, cols, layers, p.layer_m, p.depth_margin_m,
-                p.search_px, out)
+        search(self.depth, self.empty, self._nearer, self._ball, self._minima, self._slot, self._box, rows, cols,
+                layers, p.layer_m, p.depth_margin_m, p.search_px, out)
         return out
 
     def facing(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -224,7 +226,7 @@ class FreeSpace:
         # The few points that can be seen through, found in one compiled pass (numpy's passes
         # over every point took ~4 of a call's 6 ms on tube-wall's 120k, five calls a frame).
         sel, uv, q = np.empty(n, np.int64), np.empty((2, n)), np.empty((3, n))
-        k = _within_reach(x, np.ascontiguousarray(self.R_wc, np.float64), np.ascontiguousarray(self.t_wc, np.float64),
+        k = within_reach(x, np.ascontiguousarray(self.R_wc, np.float64), np.ascontiguousarray(self.t_wc, np.float64),
                           intr.fx, intr.fy, intr.cx, intr.cy, h, w, self._reach, p.depth_margin_m, sel, uv, q)
         sel, (u, v), q = sel[:k], uv[:, :k], q[:, :k]
         ui, vi = u.astype(np.int64), v.astype(np.int64)        # floor: u, v >= 0
@@ -259,107 +261,43 @@ def _components(points: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(points, np.float64).T)
 
 
+# Below this share of empty pixels about the measured ones the rows' minima are not made: the
+# searches' nearest depths are few and cheap there (a room: ~0.1 ms a frame; `twist-limb` and
+# `tube-wall` 5 % empty, a hand, a sheet or a ball on a plain background 35-75 %).
+_MINIMA_EMPTY_SHARE = 0.25
+
+
+def _rows_minima(depth: np.ndarray, empty: np.ndarray, ball: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The observation's nearest depths within the ball, prepared when it is built (on the
+    run's read-ahead worker): each row's minima at the ball's half-widths (row_minima) over the
+    measured rows and the columns within the ball of them, from which a search's nearest depth
+    takes 2 r + 1 reads instead of the ball's ~1.8k (a touch frame's first search 2.2 ms, a
+    sheet's 4.8). (minima, slot of each half-width, box r0, r1, c0, c1); no slots where the box
+    is mostly measured (_MINIMA_EMPTY_SHARE) or nothing is."""
+    none = (np.zeros((0, 1, 1), np.float32), np.zeros(1, np.int64), np.zeros(4, np.int64))
+    rows, cols = bounding_box(depth > 0, 0)
+    if rows.stop == rows.start:
+        return none
+    reach = int(ball.max())
+    h, w = depth.shape
+    r0, r1, c0, c1 = rows.start, rows.stop, max(cols.start - reach, 0), min(cols.stop + reach, w)
+    searched = empty[max(r0 - len(ball) // 2, 0):min(r1 + len(ball) // 2, h), c0:c1]
+    if searched.mean() < _MINIMA_EMPTY_SHARE:
+        return none
+    slot = np.full(reach + 1, -1, np.int64)
+    widths = np.unique(ball)
+    slot[widths] = np.arange(len(widths))
+    box = np.array([r0, r1, c0, c1], np.int64)
+    return row_minima(depth, slot, r0, r1, c0, c1), slot, box
+
+
 @functools.lru_cache(maxsize=4)
 def _ball_widths(radius_px: int) -> np.ndarray:
     """Half-widths of the rows dy = -radius..radius of the pixels within chamfer distance
     radius_px of a pixel (the ball the occluder test's transform looks into). Made once: ~1k
     calls into a compiled function, 1.4 ms a touch frame when made with each observation."""
     r = int(radius_px)
-    out = np.array([max(dx for dx in range(r + 1) if _chamfer(dy, dx) <= r) for dy in range(-r, r + 1)], np.int64)
+    out = np.array([max(dx for dx in range(r + 1) if chamfer(dy, dx) <= r) for dy in range(-r, r + 1)], np.int64)
     out.flags.writeable = False
     return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _chamfer(dy, dx):
-    """cv2's DIST_MASK_5 chamfer distance of a pixel offset (steps 1, diagonals 1.4, knight's
-    moves 2.1969) with nothing in the way: what its two-pass transform gives, to 5e-5 px."""
-    big, small = max(abs(dy), abs(dx)), min(abs(dy), abs(dx))
-    if big >= 2 * small:
-        return small * 2.1969 + (big - 2 * small)
-    return (big - small) * 2.1969 + (2 * small - big) * 1.4
-
-
-@numba.njit(cache=True, nogil=True)
-def _nearest_depth(depth, ball, y, x):
-    """The nearest depth measured within the ball about pixel (y, x) (inf if none)."""
-    h, w = depth.shape
-    r = len(ball) // 2
-    m = np.inf
-    for dy in range(-r, r + 1):
-        yy = y + dy
-        if 0 <= yy < h:
-            for xx in range(max(x - ball[dy + r], 0), min(x + ball[dy + r], w - 1) + 1):
-                d = depth[yy, xx]
-                if d > 0 and d < m:
-                    m = d
-    return m
-
-
-@numba.njit(cache=True, nogil=True)
-def _within_reach(x, R, t, fx, fy, cx, cy, h, w, reach, margin, sel, uv, q):
-    """The world points (3, N) in front of the camera, projecting inside the image (a pixel
-    from its last row and column) and nearer than their pixel's reach by more than `margin`:
-    their indices, sub-pixel (u, v) and camera points, written from the start of sel, uv and
-    q; their count. numpy's arithmetic, in its order."""
-    k = 0
-    for j in range(x.shape[1]):
-        q2 = x[0, j] * R[2, 0] + x[1, j] * R[2, 1] + x[2, j] * R[2, 2] + t[2]
-        if not q2 > 1e-3:
-            continue
-        q0 = x[0, j] * R[0, 0] + x[1, j] * R[0, 1] + x[2, j] * R[0, 2] + t[0]
-        q1 = x[0, j] * R[1, 0] + x[1, j] * R[1, 1] + x[2, j] * R[1, 2] + t[1]
-        inv = 1.0 / q2
-        u = fx * q0 * inv + cx
-        v = fy * q1 * inv + cy
-        if not (u >= 0 and u < w - 1 and v >= 0 and v < h - 1):
-            continue
-        if not q2 + margin < reach[int(v) * w + int(u)]:
-            continue
-        sel[k] = j
-        uv[0, k], uv[1, k] = u, v
-        q[0, k], q[1, k], q[2, k] = q0, q1, q2
-        k += 1
-    return k
-
-
-@numba.njit(cache=True, nogil=True)
-def _search(depth, empty, nearer, ball, rows, cols, layers, layer_m, margin_m, max_px, out):
-    """out[i, j]: the chamfer distance from pixel j of point i ((rows, cols) + (0, 0), (0, 1),
-    (1, 0), (1, 1)) to the nearest pixel consistent with layer layers[i] (see _transform),
-    found ring by ring; -1 if none is within max_px. A pixel at Chebyshev distance r is at
-    chamfer distance r or more, so the search ends at the first ring beyond the best."""
-    h, w = depth.shape
-    for i in range(len(rows)):
-        k = layers[i]
-        near = np.float32(k * layer_m - margin_m)      # nearer than this: an occluder
-        behind = np.float32((k + 1) * layer_m + margin_m)   # farther than this: seen through
-        for j in range(4):
-            y, x = rows[i] + j // 2, cols[i] + j % 2
-            best = np.inf
-            for r in range(max_px + 1):
-                if r > best:
-                    break
-                for dy in range(-r, r + 1):
-                    yy = y + dy
-                    if yy < 0 or yy >= h:
-                        continue
-                    step = 1 if dy == -r or dy == r else 2 * r
-                    for dx in range(-r, r + 1, step):
-                        xx = x + dx
-                        if xx < 0 or xx >= w:
-                            continue
-                        c = _chamfer(dy, dx)
-                        if c >= best:
-                            continue
-                        if empty[yy, xx]:
-                            m = nearer[yy, xx]
-                            if np.isnan(m):
-                                m = _nearest_depth(depth, ball, yy, xx)
-                                nearer[yy, xx] = m
-                            consistent = m < near
-                        else:
-                            consistent = not depth[yy, xx] > behind
-                        if consistent:
-                            best = c
-            out[i, j] = best if best <= max_px + 1 else -1.0

@@ -6,7 +6,8 @@ from surfelwarp.deform.warp_field import WarpField, WarpFieldParams, apply_updat
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import se3_exp
 from surfelwarp.tracking.blend_jacobian import data_jacobian
-from surfelwarp.tracking.free_space import FreeSpace, SilhouetteParams, _ball_widths, _chamfer, _holes
+from surfelwarp.tracking.free_space import FreeSpace, SilhouetteParams, _ball_widths, _holes
+from surfelwarp.tracking.free_space_kernels import chamfer, nearest_by_rows, nearest_depth, within_reach
 from surfelwarp.tracking.gauss_newton import NonRigidParams, solve_nonrigid
 
 INTR = Intrinsics(300.0, 300.0, 159.5, 119.5, 320, 240)
@@ -226,15 +227,15 @@ def test_the_chamfer_distance_in_closed_form_is_cv2s():
     image[50, 50] = 0
     reference = cv2.distanceTransform(image, cv2.DIST_L2, cv2.DIST_MASK_5)
     dy, dx = np.mgrid[-50:51, -50:51]
-    closed_form = np.vectorize(_chamfer)(dy, dx)
+    closed_form = np.vectorize(chamfer)(dy, dx)
     np.testing.assert_allclose(closed_form, reference, rtol=0, atol=1e-4)
     # A knight's move, five steps, five diagonals, and (3, 4) as a knight's move and two diagonals.
-    np.testing.assert_allclose([_chamfer(1, 2), _chamfer(0, 5), _chamfer(-5, 5), _chamfer(3, -4)],
+    np.testing.assert_allclose([chamfer(1, 2), chamfer(0, 5), chamfer(-5, 5), chamfer(3, -4)],
                                [2.1969, 5, 7, 2.1969 + 2 * 1.4], rtol=1e-6)
     # The occluder test's ball: its rows' half-widths reach exactly the pixels within radius.
     widths = _ball_widths(24)
     assert len(widths) == 49 and widths[24] == 24 and widths[0] == 0
-    assert _chamfer(8, widths[24 + 8]) <= 24 < _chamfer(8, widths[24 + 8] + 1)
+    assert chamfer(8, widths[24 + 8]) <= 24 < chamfer(8, widths[24 + 8] + 1)
 
 
 def test_the_term_reuses_its_answer_for_the_same_live_points_only():
@@ -287,7 +288,6 @@ def test_the_points_within_reach_are_numpys():
     """The compiled first pass of `residuals` (points in front, inside the image, nearer than
     their pixel's reach) gives numpy's points, pixels and camera points, bit for bit, with
     points behind the camera, outside the image and NaN among them."""
-    from surfelwarp.tracking.free_space import _within_reach
     T = se3_exp(np.array([0.05, -0.03, 0.02, 0.1, -0.05, 0.2]))
     space = FreeSpace(square_depth(behind=2.0), INTR, T)
     rng = np.random.default_rng(5)
@@ -305,7 +305,39 @@ def test_the_points_within_reach_are_numpys():
     sel = sel[q[2, sel] + P.depth_margin_m < space._reach[v[sel].astype(np.int64) * w + u[sel].astype(np.int64)]]
     n = x.shape[1]
     got, uv, cam = np.empty(n, np.int64), np.empty((2, n)), np.empty((3, n))
-    k = _within_reach(x, R, t, INTR.fx, INTR.fy, INTR.cx, INTR.cy, h, w, space._reach, P.depth_margin_m, got, uv, cam)
+    k = within_reach(x, R, t, INTR.fx, INTR.fy, INTR.cx, INTR.cy, h, w, space._reach, P.depth_margin_m, got, uv, cam)
     assert 100 < k < n - 1000
     assert np.array_equal(got[:k], sel)
     assert np.array_equal(uv[:, :k], np.stack([u[sel], v[sel]])) and np.array_equal(cam[:, :k], q[:, sel])
+
+
+def test_nearest_depths_from_the_rows_minima_are_the_balls():
+    """The rows' minima give every pixel's nearest depth within the occluder test's ball as the
+    ball itself does: objects on an empty background (the minima made), beside the image's
+    edges and with pixels measured beyond the far clip (inf); and a mostly measured image makes
+    none (the searches read the image)."""
+    rng = np.random.default_rng(7)
+    depth = np.zeros((INTR.height, INTR.width), np.float32)
+    depth[30:90, 0:50] = rng.uniform(0.5, 2.0, (60, 50))           # at the left edge
+    depth[150:240, 200:260] = rng.uniform(0.5, 2.0, (90, 60))      # at the bottom edge
+    depth[0:20, 290:320] = rng.uniform(0.5, 2.0, (20, 30))         # in the top right corner
+    depth[100:120, 120:150] = np.inf                                # beyond the far clip
+    depth[rng.uniform(size=depth.shape) < 0.3] = 0                 # dropouts
+    space = FreeSpace(depth, INTR, np.eye(4))
+    assert space._minima.shape[0] == len(np.unique(space._ball))
+    assert space._box[2] == 0 and space._box[3] == INTR.width
+    ball = space._ball
+    ys, xs = np.mgrid[0:INTR.height:3, 0:INTR.width:3]
+    from_rows = [nearest_by_rows(space._minima, space._slot, space._box, ball, y, x) for y, x in zip(ys.ravel(), xs.ravel())]
+    from_ball = [nearest_depth(space.depth, ball, y, x) for y, x in zip(ys.ravel(), xs.ravel())]
+    assert from_rows == from_ball
+    assert np.isfinite(from_ball).mean() > 0.2 and np.isinf(from_ball).mean() > 0.2
+    # a box away from the edges: the columns beyond it count as unmeasured
+    inner = np.zeros_like(depth)
+    inner[100:140, 140:180] = rng.uniform(0.5, 2.0, (40, 40))
+    space = FreeSpace(inner, INTR, np.eye(4))
+    assert space._box[2] > 0 and space._box[3] < INTR.width
+    for y, x in zip(*np.mgrid[95:145, 0:INTR.width].reshape(2, -1)):     # every pixel of its rows
+        assert nearest_by_rows(space._minima, space._slot, space._box, ball, y, x) == \
+            nearest_depth(space.depth, ball, y, x)
+    assert FreeSpace(np.ones_like(depth), INTR, np.eye(4))._minima.shape[0] == 0
