@@ -181,7 +181,7 @@ class FreeSpace:
         out = np.empty((len(rows), 4), np.float32)
         p = self.params
         search(self.depth, self.empty, self._nearer, self._ball, self._minima, self._slot, self._box, rows, cols,
-                layers, p.layer_m, p.depth_margin_m, p.search_px, out)
+               layers, p.layer_m, p.depth_margin_m, p.search_px, out)
         return out
 
     def facing(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -227,7 +227,7 @@ class FreeSpace:
         # over every point took ~4 of a call's 6 ms on tube-wall's 120k, five calls a frame).
         sel, uv, q = np.empty(n, np.int64), np.empty((2, n)), np.empty((3, n))
         k = within_reach(x, np.ascontiguousarray(self.R_wc, np.float64), np.ascontiguousarray(self.t_wc, np.float64),
-                          intr.fx, intr.fy, intr.cx, intr.cy, h, w, self._reach, p.depth_margin_m, sel, uv, q)
+                         intr.fx, intr.fy, intr.cx, intr.cy, h, w, self._reach, p.depth_margin_m, sel, uv, q)
         sel, (u, v), q = sel[:k], uv[:, :k], q[:, :k]
         ui, vi = u.astype(np.int64), v.astype(np.int64)        # floor: u, v >= 0
         z = q[2]

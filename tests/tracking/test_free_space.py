@@ -204,7 +204,7 @@ def test_windowed_distance_transforms_equal_the_whole_images():
     assert any(box[:4] != (0, h, 0, w) for box in windowed._layers.values())   # windows were used
 
 
-def test_the_search_about_each_point_equals_the_whole_images_transforms():
+def test_the_search_about_each_point_equals_the_whole_images_transforms(monkeypatch):
     """Distances up to search_px are searched for about each point; the residuals and gradients
     must be the transforms', and farther points must fall back to the transforms."""
     depth, points = steps_scene_and_points()
@@ -220,6 +220,15 @@ def test_the_search_about_each_point_equals_the_whole_images_transforms():
     # Every layer searched alone: the nearest-depth memo fills the same whichever layer asked first.
     again = FreeSpace(depth, INTR, np.eye(4))
     np.testing.assert_allclose(again.residuals(points[:, ::-1])[0][::-1], r1, rtol=0, atol=1e-12)
+    # The nearest depths from the rows' minima (this scene is mostly measured: made only when
+    # asked to): the same answers to the bit.
+    from surfelwarp.tracking import free_space
+    assert searched._minima.shape[0] == 0
+    monkeypatch.setattr(free_space, "_MINIMA_EMPTY_SHARE", 0.0)
+    from_minima = FreeSpace(depth, INTR, np.eye(4))
+    assert from_minima._minima.shape[0] > 0
+    r3, g3 = from_minima.residuals(points)
+    assert r3.tobytes() == r1.tobytes() and g3.tobytes() == g1.tobytes()
 
 
 def test_the_chamfer_distance_in_closed_form_is_cv2s():
@@ -328,8 +337,9 @@ def test_nearest_depths_from_the_rows_minima_are_the_balls():
     assert space._box[2] == 0 and space._box[3] == INTR.width
     ball = space._ball
     ys, xs = np.mgrid[0:INTR.height:3, 0:INTR.width:3]
-    from_rows = [nearest_by_rows(space._minima, space._slot, space._box, ball, y, x) for y, x in zip(ys.ravel(), xs.ravel())]
-    from_ball = [nearest_depth(space.depth, ball, y, x) for y, x in zip(ys.ravel(), xs.ravel())]
+    pixels = list(zip(ys.ravel(), xs.ravel()))
+    from_rows = [nearest_by_rows(space._minima, space._slot, space._box, ball, y, x) for y, x in pixels]
+    from_ball = [nearest_depth(space.depth, ball, y, x) for y, x in pixels]
     assert from_rows == from_ball
     assert np.isfinite(from_ball).mean() > 0.2 and np.isinf(from_ball).mean() > 0.2
     # a box away from the edges: the columns beyond it count as unmeasured
