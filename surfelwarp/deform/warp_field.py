@@ -79,8 +79,15 @@ class WarpField:
         return to_global(self.transforms, self.nodes)
 
     def dual_quaternions(self) -> np.ndarray:
-        """(M, 8) unit dual quaternions of the G_j."""
-        return dq_from_transform(self.global_transforms())
+        """(M, 8) unit dual quaternions of the G_j, made once a field (read-only): a frame asks
+        the same field for them several times (the solve's iterate and its Jacobian, the warp,
+        the inverse warps of fusion and appending)."""
+        dqs = self.__dict__.get("_dual_quaternions")
+        if dqs is None:
+            dqs = dq_from_transform(self.global_transforms())
+            dqs.flags.writeable = False
+            object.__setattr__(self, "_dual_quaternions", dqs)   # frozen: set once, as a cache
+        return dqs
 
     def live_nodes(self) -> np.ndarray:
         """(M, 3) node positions warped by their own transforms, p_j + t_j."""

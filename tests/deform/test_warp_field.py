@@ -105,6 +105,20 @@ def test_rigid_field_warps_like_the_rigid_transform():
     assert np.allclose(rigid.live_nodes(), field.nodes @ G[:3, :3].T + G[:3, 3], atol=1e-6)
 
 
+def test_a_fields_dual_quaternions_are_made_once_and_read_only():
+    from surfelwarp.geometry.dual_quaternion import dq_from_transform
+    field = smooth_field(WarpField.from_points(bumpy_sheet(0.01)))
+    dqs = field.dual_quaternions()
+    assert dqs.tobytes() == dq_from_transform(field.global_transforms()).tobytes()
+    assert field.dual_quaternions() is dqs and not dqs.flags.writeable
+    with pytest.raises(ValueError):
+        dqs[0, 0] = 2.0
+    # a field with other transforms makes its own
+    moved = field.with_transforms(field.transforms[::-1].copy())
+    assert moved.dual_quaternions() is not dqs
+    assert moved.dual_quaternions().tobytes() == dq_from_transform(moved.global_transforms()).tobytes()
+
+
 def test_inverse_warp_undoes_warp():
     pts = shirt_points()
     field = smooth_field(WarpField.from_points(pts))
