@@ -89,6 +89,10 @@ class WarpField:
             object.__setattr__(self, "_dual_quaternions", dqs)   # frozen: set once, as a cache
         return dqs
 
+    def __getstate__(self) -> dict:
+        """A checkpoint's copy leaves the dual quaternions out: made again when asked."""
+        return {k: v for k, v in self.__dict__.items() if k != "_dual_quaternions"}
+
     def live_nodes(self) -> np.ndarray:
         """(M, 3) node positions warped by their own transforms, p_j + t_j."""
         return self.nodes + self.transforms[:, :3, 3]

@@ -117,6 +117,11 @@ def test_a_fields_dual_quaternions_are_made_once_and_read_only():
     moved = field.with_transforms(field.transforms[::-1].copy())
     assert moved.dual_quaternions() is not dqs
     assert moved.dual_quaternions().tobytes() == dq_from_transform(moved.global_transforms()).tobytes()
+    # a checkpoint's copy keeps the field, not the cache
+    import pickle
+    copy = pickle.loads(pickle.dumps(field))
+    assert "_dual_quaternions" not in copy.__dict__ and copy.transforms.tobytes() == field.transforms.tobytes()
+    assert copy.dual_quaternions().tobytes() == dqs.tobytes() and not copy.dual_quaternions().flags.writeable
 
 
 def test_inverse_warp_undoes_warp():
