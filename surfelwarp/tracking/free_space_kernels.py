@@ -109,7 +109,7 @@ def within_reach(x, R, t, fx, fy, cx, cy, h, w, reach, margin, sel, uv, q):
 @numba.njit(cache=True, nogil=True)
 def search(depth, empty, nearer, ball, minima, slot, box, rows, cols, layers, layer_m, margin_m, max_px, out):
     """out[i, j]: the chamfer distance from pixel j of point i ((rows, cols) + (0, 0), (0, 1),
-    (1, 0), (1, 1)) to the nearest pixel consistent with layer layers[i] (see _transform),
+    (1, 0), (1, 1)) to the nearest pixel consistent with layer layers[i] (FreeSpace._transform),
     found ring by ring; -1 if none is within max_px. A pixel at Chebyshev distance r is at
     chamfer distance r or more, so the search ends at the first ring beyond the best. The
     nearest depths it needs are memoised in `nearer`, from the rows' `minima` where given (any
