@@ -92,7 +92,17 @@ def twist_dual_quaternions(field: WarpField, q: np.ndarray | None = None) -> np.
 
     L_j <- exp(xi) L_j is the world motion G_j <- exp(xi') G_j with xi' = (omega, v + p_j x omega),
     and d(exp(xi') G_j) = (0, omega'/2) + eps (0, v'/2), times the dual quaternion of G_j.
+    Compiled (twist_dual_quaternions_reference is the numpy form, to the bit): numpy's products
+    of the (M, 6, 8) derivatives took ~11 ms a call on a room's 9k nodes.
     """
+    q = field.dual_quaternions() if q is None else q
+    out = np.empty((len(q), 6, 8))
+    _twist_dual_quaternions(np.ascontiguousarray(q, np.float64), np.ascontiguousarray(field.nodes, np.float64), out)
+    return out
+
+
+def twist_dual_quaternions_reference(field: WarpField, q: np.ndarray | None = None) -> np.ndarray:
+    """twist_dual_quaternions in numpy: the derivatives as dual quaternions times q."""
     q = field.dual_quaternions() if q is None else q
     p = field.nodes.astype(np.float64)
     m = len(q)
@@ -104,6 +114,38 @@ def twist_dual_quaternions(field: WarpField, q: np.ndarray | None = None) -> np.
         delta[:, a, 5:] = 0.5 * np.cross(p, e)
         delta[:, 3 + a, 5 + a] = 0.5
     return dq_multiply(delta, q[:, None, :])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _quat_multiply(a0, a1, a2, a3, b0, b1, b2, b3):
+    """quat_multiply's sums, in its order."""
+    return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3, a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
+            a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1, a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _twist_dual_quaternions(q, p, out):
+    """The reference's products term by term, zeros included (0 * x is not 0 for x inf or NaN,
+    and the signs of zeros follow the same sums)."""
+    d, e = np.zeros(8), np.eye(3)
+    for j in range(len(q)):
+        p0, p1, p2 = p[j, 0], p[j, 1], p[j, 2]
+        for a in range(6):
+            d[:] = 0.0
+            if a < 3:
+                d[1 + a] = 0.5
+                e0, e1, e2 = e[a, 0], e[a, 1], e[a, 2]
+                d[5] = 0.5 * (p1 * e2 - p2 * e1)        # np.cross(p, e), its order
+                d[6] = 0.5 * (p2 * e0 - p0 * e2)
+                d[7] = 0.5 * (p0 * e1 - p1 * e0)
+            else:
+                d[2 + a] = 0.5
+            r = _quat_multiply(d[0], d[1], d[2], d[3], q[j, 0], q[j, 1], q[j, 2], q[j, 3])
+            s = _quat_multiply(d[0], d[1], d[2], d[3], q[j, 4], q[j, 5], q[j, 6], q[j, 7])
+            t = _quat_multiply(d[4], d[5], d[6], d[7], q[j, 0], q[j, 1], q[j, 2], q[j, 3])
+            for i in range(4):
+                out[j, a, i] = r[i]
+                out[j, a, 4 + i] = s[i] + t[i]
 
 
 def jacobian_factors(field: WarpField, ref_points: np.ndarray, knn: np.ndarray, weights: np.ndarray,

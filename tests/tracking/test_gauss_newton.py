@@ -135,6 +135,24 @@ def test_data_jacobian_matches_finite_differences_of_the_true_warp(problem):
     assert np.abs(analytic - numeric).max() < 1e-6 * np.abs(numeric).max()
 
 
+def test_twist_dual_quaternions_compiled_equal_numpy_to_the_bit(problem):
+    from surfelwarp.tracking.blend_jacobian import twist_dual_quaternions, twist_dual_quaternions_reference
+    for seed in range(3):
+        field = random_field(problem, seed=seed)
+        q = field.dual_quaternions().copy()
+        q[0] = [np.inf, 0, 0, 0, 0, 0, 0, 0]       # a run-away node: the zeros' products are NaN
+        q[1] = -q[1]                               # either sign of a node's quaternion
+        D, ref = twist_dual_quaternions(field, q), twist_dual_quaternions_reference(field, q)
+        assert D.shape == (field.num_nodes, 6, 8)
+        assert np.array_equal(D.view(np.uint64), ref.view(np.uint64))
+    # Known answer: at the identity, turning about x at node p moves the real part by (0, 1/2, 0, 0)
+    # and the dual part by p x e_x / 2; a shift along y is (0, 0, 1/2, 0) in the dual part.
+    p = problem.field.nodes[3].astype(np.float64)
+    D = twist_dual_quaternions(problem.field)[3]
+    np.testing.assert_array_equal(D[0], [0, 0.5, 0, 0, 0, 0, 0.5 * p[2], -0.5 * p[1]])
+    np.testing.assert_array_equal(D[4], [0, 0, 0, 0, 0, 0, 0.5, 0])
+
+
 def test_reg_jacobian_matches_finite_differences(problem):
     field = random_field(problem, seed=2)
     m = field.num_nodes
