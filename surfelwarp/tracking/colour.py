@@ -21,7 +21,8 @@ from surfelwarp.tracking.ahead import FoundAhead
 from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
                                           ModelView, checked_pairs, checked_points, combine, detect, flow_at,
                                           flow_pairs, grid_pixels, lift, match_descriptors, match_frames,
-                                          near_prediction, on_model_map, refine, solved_index, surface_depth)
+                                          near_prediction, on_model_map, refine, solved_index, surface_depth,
+                                          where_image)
 from surfelwarp.tracking.patch_align import MotionPrior
 from surfelwarp.tracking.rigidity import locally_rigid
 
@@ -203,11 +204,11 @@ class ColourMatcher:
         # The model's colour is drawn interpolated about the surfels' centres (render.colour_map),
         # so each grid pixel's pair starts where the centre of the surfel drawn there projects.
         drawn = model.color_drawn
-        source = np.where(drawn[..., None], model.color_map, last.color)
+        source = where_image(drawn, model.color_map, last.color)
         grid = grid_pixels(drawn, p.flow_stride_px).astype(np.int64)
         centres = model.vertex_map[grid[:, 1], grid[:, 0]].astype(np.float64)
         pa = self.intrinsics.project(centres).astype(np.float32)
-        depth = np.where(drawn, model.vertex_map[..., 2], surface_depth(last.vertex_map, last.valid))
+        depth = where_image(drawn, model.vertex_map[..., 2], surface_depth(last.vertex_map, last.valid))
         pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa, p, depth, prior)
         m = checked_points(pa[inside], pb[inside], centres[inside], np.ones(int(inside.sum()), bool), *current)
         return self._on_model(m, model, field, p.flow_weight)

@@ -10,7 +10,8 @@ from pykdtree.kdtree import KDTree
 from surfelwarp.config import range_problem
 from surfelwarp.data_tools.texture import albedo
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.tracking.features import FeatureParams, checked_pairs, detect, flow_pairs, grey, match_frames, refine
+from surfelwarp.tracking.features import (FeatureParams, checked_pairs, detect, flow_pairs, grey, match_frames, refine,
+                                          surface_depth, where_image)
 from surfelwarp.tracking.rigidity import locally_rigid, rigidity_votes
 from surfelwarp.tracking.descriptors import nearest_both_ways
 
@@ -49,6 +50,26 @@ def known_warp(rgb: np.ndarray, rng: np.random.Generator):
     out = cv2.remap(rgb, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     out = np.clip(out + rng.normal(0.0, 2.0, out.shape), 0, 255).astype(np.uint8)
     return out, forward
+
+
+def test_where_image_is_numpy_where_on_images():
+    rng = np.random.default_rng(3)
+    mask = rng.random((48, 64)) < 0.4
+    for a, b in [(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8), rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)),
+                 (rng.random((48, 64)).astype(np.float32), rng.random((48, 64)).astype(np.float32)),
+                 (rng.random((48, 64)), np.zeros(())), (rng.random((48, 64)).astype(np.float32), np.float32(-0.0))]:
+        a[0, 0, ...] = np.nan if a.dtype.kind == "f" else a[0, 0, ...]
+        want = np.where(mask[..., None] if a.ndim == 3 else mask, a, b)
+        got = where_image(mask, a, b)
+        assert got.dtype == want.dtype and got.shape == want.shape
+        assert np.array_equal(got.view(np.uint8), want.view(np.uint8))       # to the bit, NaN and -0 too
+    # Known answer; the depth refine reads: the vertex map's z where valid, +0 elsewhere.
+    vertex = np.zeros((2, 3, 3), np.float32)
+    vertex[..., 2] = [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]
+    valid = np.array([[True, False, True], [False, True, False]])
+    depth = surface_depth(vertex, valid)
+    assert depth.dtype == np.float32 and depth.tolist() == [[1.0, 0.0, 3.0], [0.0, 5.0, 0.0]]
+    assert not np.signbit(depth).any()
 
 
 @pytest.mark.parametrize("detector", ["sift", "orb"])
