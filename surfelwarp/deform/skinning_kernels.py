@@ -7,22 +7,30 @@ import numba
 import numpy as np
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _reach(pts, nodes, knn, i):
+    """Point i's squared distance to its farthest current neighbour (float32) and whether a
+    padding slot repeats a node."""
+    reach, padded = np.float32(0.0), False
+    for s in range(knn.shape[1]):
+        a = knn[i, s]
+        d0, d1, d2 = nodes[a, 0] - pts[i, 0], nodes[a, 1] - pts[i, 1], nodes[a, 2] - pts[i, 2]
+        reach = max(reach, d0 * d0 + d1 * d1 + d2 * d2)
+        for t in range(s):
+            if knn[i, t] == a:
+                padded = True
+    return reach, padded
+
+
 @numba.njit(cache=True, nogil=True)
 def may_change(pts, nodes, knn, new, nearest):
     """(N,) points whose skinning a new node may change: a padding slot (a node repeated), or
     a new node nearer than the farthest current neighbour (float32, with a margin). `nearest`:
     each point's squared distance to its nearest new node; None: found here among all of `new`."""
-    n, k = knn.shape
+    n = len(knn)
     out = np.zeros(n, np.bool_)
     for i in range(n):
-        reach = np.float32(0.0)
-        for s in range(k):
-            a = knn[i, s]
-            d0, d1, d2 = nodes[a, 0] - pts[i, 0], nodes[a, 1] - pts[i, 1], nodes[a, 2] - pts[i, 2]
-            reach = max(reach, d0 * d0 + d1 * d1 + d2 * d2)
-            for t in range(s):
-                if knn[i, t] == a:
-                    out[i] = True
+        reach, out[i] = _reach(pts, nodes, knn, i)
         if out[i]:
             continue
         if nearest is None:
@@ -63,19 +71,12 @@ def near_cells(pts, nodes, knn, grid, origin, cell_m):
     about a cell away or farther, or a cell the grid (occupancy) marks as within one of a new
     node's: any new node within that neighbour's distance is in one of the 27 cells about the
     point's. The rest keep their skinning."""
-    n, k = knn.shape
+    n = len(knn)
     gx, gy, gz = grid.shape
     limit = (cell_m * (1 - 1e-6)) ** 2
     out = np.zeros(n, np.bool_)
     for i in range(n):
-        reach = np.float32(0.0)
-        for s in range(k):
-            a = knn[i, s]
-            d0, d1, d2 = nodes[a, 0] - pts[i, 0], nodes[a, 1] - pts[i, 1], nodes[a, 2] - pts[i, 2]
-            reach = max(reach, d0 * d0 + d1 * d1 + d2 * d2)
-            for t in range(s):
-                if knn[i, t] == a:
-                    out[i] = True
+        reach, out[i] = _reach(pts, nodes, knn, i)
         if out[i] or not reach * (1 + 1e-4) + 1e-12 < limit:
             out[i] = True
             continue
