@@ -51,7 +51,7 @@ def occupancy(new: np.ndarray, cell_m: float, max_cells: int = 1 << 22) -> tuple
     outside it is farther than a cell's side from every new node."""
     new = np.asarray(new, np.float64)
     lo, extent = new.min(axis=0), np.ptp(new, axis=0)
-    cell_m = max(float(cell_m), float(np.max(extent)) / (max_cells ** (1 / 3) - 4), 1e-9)
+    cell_m = max(float(cell_m), float(np.max(extent)) / (max_cells ** (1 / 3) - 5), 1e-9)   # sides <= extent / cell + 5
     origin = lo - 2 * cell_m
     ijk = np.floor((new - origin) / cell_m).astype(np.int64)
     held = np.zeros(tuple(ijk.max(axis=0) + 3), np.bool_)

@@ -44,12 +44,13 @@ def test_near_cells_known_answer():
 
 
 def test_occupancy_grows_its_cells_for_strewn_nodes():
-    new = np.array([[0.0, 0, 0], [100.0, 0, 0], [0, 50.0, 3.0]])
-    grid, origin, side = occupancy(new, 0.01, max_cells=1 << 15)
-    assert grid.size <= 1 << 15 and side > 0.01
-    ijk = np.floor((new - origin) / side).astype(int)
-    assert grid[tuple(ijk.T)].all()
-    assert not grid[0].any() and not grid[-1].any()     # a cell's margin about the dilated cells
+    for new in (np.array([[0.0, 0, 0], [100.0, 0, 0], [0, 50.0, 3.0]]), np.array([[0.0, 0, 0], [80.0, 80, 80], [40, 10, 70]])):
+        grid, origin, side = occupancy(new, 0.01, max_cells=30000)
+        assert grid.size <= 30000 and side > 0.01
+        ijk = np.floor((new - origin) / side).astype(int)
+        assert grid[tuple(ijk.T)].all()
+        for axis in range(3):       # a cell's margin about the dilated cells
+            assert not np.take(grid, 0, axis).any() and not np.take(grid, -1, axis).any()
 
 
 @pytest.mark.parametrize("start", ["part", "padded"])
