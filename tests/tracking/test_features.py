@@ -57,8 +57,11 @@ def test_where_image_is_numpy_where_on_images():
     mask = rng.random((48, 64)) < 0.4
     for a, b in [(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8), rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)),
                  (rng.random((48, 64)).astype(np.float32), rng.random((48, 64)).astype(np.float32)),
-                 (rng.random((48, 64)), np.zeros(())), (rng.random((48, 64)).astype(np.float32), np.float32(-0.0))]:
-        a[0, 0, ...] = np.nan if a.dtype.kind == "f" else a[0, 0, ...]
+                 (rng.random((48, 64)), np.zeros(())), (rng.random((48, 64)).astype(np.float32), np.float32(-0.0)),
+                 (rng.integers(0, 9, (48, 64), dtype=np.int64), np.int64(-1)),        # not OpenCV's: numpy's where
+                 (rng.random((48, 64)) < 0.5, np.zeros((48, 64), bool)), (rng.random((48, 64, 6)), np.zeros(()))]:
+        if a.dtype.kind == "f":
+            a[0, 0, ...] = np.nan
         want = np.where(mask[..., None] if a.ndim == 3 else mask, a, b)
         got = where_image(mask, a, b)
         assert got.dtype == want.dtype and got.shape == want.shape
