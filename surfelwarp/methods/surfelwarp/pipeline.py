@@ -88,7 +88,7 @@ class SurfelWarpMethod:
         m = self.model
 
         # Solver maps: the drawn surfels (all of a template; else stable, and recent ones where
-        # no stable surfel is drawn) at the previous pose.
+        # no stable surfel is drawn) at the previous pose; the surfels they show are the solve's.
         drawn = fill = None
         if self.fusion:
             stable = m.confidence >= p.fusion.stable_confidence
@@ -101,14 +101,14 @@ class SurfelWarpMethod:
                 drawn = np.flatnonzero(stable | recent)
         maps = render_solver_maps(*transform_surfels(invert(self.T_camera_to_world), m.live_position, m.live_normal),
                                   m.radius, self.intrinsics, indices=drawn, fill_indices=fill)
-        timer.lap("solver_maps")
-
-        # Colour features of the last frame matched into this one, on the visible surfels drawn
-        # at them.
         seen = np.zeros(len(m), bool)
         seen[maps.index[maps.index >= 0]] = True
         visible = np.flatnonzero(seen)
         surfels = SurfelSet(*(np.take(a, visible, axis=0) for a in (m.ref_position, m.ref_normal, m.knn, m.weights)))
+        timer.lap("solver_maps")
+
+        # Colour features of the last frame matched into this one, on the visible surfels drawn
+        # at them.
         matches = self.tracker.features(obs, self._model_view(maps, visible), self.field)
         timer.lap("features")
 
