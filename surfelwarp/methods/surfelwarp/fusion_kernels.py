@@ -1,7 +1,12 @@
 """Compiled (numba) loops of fusion's two index-map searches: each depth pixel's best surfel in
 its window, and near-duplicate surfels on neighbouring fine pixels. In numpy both were a pass
 per window slot or neighbour offset over every candidate (tube-wall, 275k surfels: 53 and 35 ms
-a frame); here one pass over the pixels or surfels (a few ms). fusion.py holds the semantics."""
+a frame); here one pass over the pixels or surfels (a few ms). fusion.py holds the semantics.
+
+The three searches run their pixels or surfels on numba's threads: each pixel's answer is its
+own, and the duplicate marking only ever sets flags, so no answer depends on the order or the
+thread count (a test runs them on one thread and on two). The model update runs on one core
+otherwise; on 7-Scenes they took the fuse, append and remove stages 158 / 157 -> 133 / 130 ms."""
 from __future__ import annotations
 
 import numba
@@ -19,7 +24,7 @@ def _gap(points, normals, k, vertex, normal, p):
         normals[k, 2] * normal[p, 2]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def best_in_windows(index, origin_rows, origin_cols, window, points, normals, vertex, normal, gate2,
                     normal_threshold, confidence, best_k, best_d2):
     """For pixel p (its depth vertex and normal, gate2 its squared distance gate): among the
@@ -27,7 +32,7 @@ def best_in_windows(index, origin_rows, origin_cols, window, points, normals, ve
     both gates, the highest confidence, then the smallest distance, then the first in row-major
     window order, into best_k[p] (-1: none) and best_d2[p]."""
     h, w = index.shape
-    for p in range(len(origin_rows)):
+    for p in numba.prange(len(origin_rows)):
         best, best_conf, best_dist = -1, np.float32(-np.inf), np.float32(np.inf)
         for dy in range(window):
             y = origin_rows[p] + dy
@@ -50,14 +55,14 @@ def best_in_windows(index, origin_rows, origin_cols, window, points, normals, ve
         best_d2[p] = best_dist
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def mark_redundant(index, surfels, fine_rows, fine_cols, reach, position, normal, radius, confidence,
                    distance_ratio, normal_threshold, drop):
     """For each surfel j on fine pixel (fine_rows, fine_cols) and each surfel i on the pixels
     within `reach` of it (i != j): if they are closer than distance_ratio * min(r_i, r_j) with
     dot(n_i, n_j) > normal_threshold, mark the one of lower confidence (ties: higher index)."""
     h, w = index.shape
-    for q in range(len(surfels)):
+    for q in numba.prange(len(surfels)):
         j = surfels[q]
         for dy in range(-reach, reach + 1):
             y = fine_rows[q] + dy
@@ -83,7 +88,7 @@ def mark_redundant(index, surfels, fine_rows, fine_cols, reach, position, normal
                         drop[i] = True
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def mark_covered(index, s, rows, cols, reach, points, normals, depth_v, depth_n, max_d2, covered):
     """covered[p] for depth pixel (rows[p], cols[p]): a surfel on the fine pixels of a depth
     pixel within `reach` of it (index at supersampling s) lies within max_d2 (squared) of its
@@ -92,7 +97,7 @@ def mark_covered(index, s, rows, cols, reach, points, normals, depth_v, depth_n,
     numpy einsum's order, so the same pixels are covered."""
     h, w = index.shape[0] // s, index.shape[1] // s
     side = 2 * reach + 1
-    for p in range(len(rows)):
+    for p in numba.prange(len(rows)):
         for o in range(side * side):            # offsets row by row
             y, x = rows[p] + o // side - reach, cols[p] + o % side - reach
             if covered[p]:

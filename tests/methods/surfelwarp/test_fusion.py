@@ -411,6 +411,52 @@ def test_compiled_searches_equal_a_per_pixel_reference():
     assert drop.any() and np.array_equal(drop, expected)
 
 
+def test_compiled_searches_do_not_depend_on_the_thread_count():
+    """The window search, the duplicate marking and the coverage search, on one thread and on
+    two, over random maps where many pixels and surfels compete (the surfels shuffled, so that
+    both threads' halves reach the same pixels): the same answers."""
+    import numba
+
+    from surfelwarp.methods.surfelwarp.fusion_kernels import best_in_windows, mark_covered, mark_redundant
+    rng = np.random.default_rng(11)
+    n, h, w, s = 3000, 96, 128, 4
+    index = np.where(rng.random((h, w)) < 0.8, rng.integers(0, n, (h, w)), -1).astype(np.int32)
+    points = rng.normal(scale=0.004, size=(n, 3)).astype(np.float32)
+    normals = np.tile(np.float32([0, 0, -1]), (n, 1)) + rng.normal(scale=0.2, size=(n, 3)).astype(np.float32)
+    conf = rng.integers(0, 3, n).astype(np.float32)
+    radius = rng.uniform(0.005, 0.02, n).astype(np.float32)
+    rows, cols = np.nonzero(rng.random((h // s, w // s)) < 0.9)
+    vertex = rng.normal(scale=0.004, size=(len(rows), 3)).astype(np.float32)
+    normal = np.tile(np.float32([0, 0, -1]), (len(rows), 1))
+    gate2 = np.full(len(rows), 0.006 ** 2, np.float32)
+    fr, fc = np.nonzero(index >= 0)
+    order = rng.permutation(len(fr))          # the surfels in no spatial order: the threads' halves meet
+    fr, fc = fr[order], fc[order]
+
+    def answers():
+        best_k, best_d2 = np.empty(len(rows), np.int64), np.empty(len(rows), np.float32)
+        best_in_windows(index, s * rows - 1, s * cols - 1, s + 2, points, normals, vertex, normal, gate2,
+                        np.float32(0.9), conf, best_k, best_d2)
+        drop = np.zeros(n, bool)
+        mark_redundant(index, index[fr, fc].astype(np.int64), fr, fc, 1, points, normals, radius, conf,
+                       np.float32(0.5), np.float32(0.95), drop)
+        covered = np.zeros(len(rows), bool)
+        mark_covered(index, s, rows, cols, 1, points, normals, vertex, normal, gate2, covered)
+        return best_k, best_d2, drop, covered
+
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = answers()
+        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+        two = answers()
+    finally:
+        numba.set_num_threads(before)
+    assert (one[0] >= 0).any() and one[2].any() and one[3].any() and not one[3].all()
+    for a, b in zip(one, two):
+        assert np.array_equal(a, b)
+
+
 @pytest.mark.parametrize("colour", [False, True])
 def test_compiled_fuse_equals_the_numpy_reference(gl, obs, colour):
     """Random confidences, colours and colour weights (some surfels never seen in colour), half
