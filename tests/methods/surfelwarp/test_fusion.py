@@ -364,20 +364,29 @@ def test_compiled_coverage_equals_the_numpy_passes(gl, obs):
     assert min(counts) < 0.05 * obs.num_valid and max(counts) > 0.6 * obs.num_valid, counts
 
 
+def random_search_inputs(rng, n: int, h: int, w: int, s: int, fill: float, pixel_share: float, spread_m: float):
+    """Inputs of fusion's index-map searches: a fine map (h, w) of n surfels on a share `fill`
+    of its pixels, their points (spread_m apart), normals about -z and confidences 0-2 (ties),
+    and the depth pixels of a share pixel_share of the coarse grid (every s-th fine pixel) with
+    their vertices and normals (rows, cols, vertex, normal)."""
+    index = np.where(rng.random((h, w)) < fill, rng.integers(0, n, (h, w)), -1).astype(np.int32)
+    points = rng.normal(scale=spread_m, size=(n, 3)).astype(np.float32)
+    normals = np.tile(np.float32([0, 0, -1]), (n, 1)) + rng.normal(scale=0.2, size=(n, 3)).astype(np.float32)
+    conf = rng.integers(0, 3, n).astype(np.float32)
+    rows, cols = np.nonzero(rng.random((h // s, w // s)) < pixel_share)
+    vertex = rng.normal(scale=spread_m, size=(len(rows), 3)).astype(np.float32)
+    normal = np.tile(np.float32([0, 0, -1]), (len(rows), 1))
+    return index, points, normals, conf, rows, cols, vertex, normal
+
+
 def test_compiled_searches_equal_a_per_pixel_reference():
     """The compiled window search and duplicate marking against plain loops over a random
     index map with ties in confidence (the order rules decide)."""
     from surfelwarp.methods.surfelwarp.fusion_kernels import best_in_windows, mark_redundant
     rng = np.random.default_rng(9)
     n, h, w, window = 400, 24, 32, 4
-    index = np.where(rng.random((h, w)) < 0.6, rng.integers(0, n, (h, w)), -1).astype(np.int32)
-    points = rng.normal(scale=0.01, size=(n, 3)).astype(np.float32)
-    normals = np.tile(np.float32([0, 0, -1]), (n, 1)) + rng.normal(scale=0.2, size=(n, 3)).astype(np.float32)
-    conf = rng.integers(0, 3, n).astype(np.float32)
-    rows, cols = np.nonzero(rng.random((h // 4, w // 4)) < 0.8)
+    index, points, normals, conf, rows, cols, vertex, normal = random_search_inputs(rng, n, h, w, 4, 0.6, 0.8, 0.01)
     o_r, o_c = 4 * rows - 1, 4 * cols - 1                  # windows reaching over the map's edge
-    vertex = rng.normal(scale=0.01, size=(len(rows), 3)).astype(np.float32)
-    normal = np.tile(np.float32([0, 0, -1]), (len(rows), 1))
     gate2 = np.full(len(rows), 0.015 ** 2, np.float32)
     best_k, best_d2 = np.empty(len(rows), np.int64), np.empty(len(rows), np.float32)
     best_in_windows(index, o_r, o_c, window + 2, points, normals, vertex, normal, gate2, np.float32(0.9), conf,
@@ -420,14 +429,8 @@ def test_compiled_searches_do_not_depend_on_the_thread_count():
     from surfelwarp.methods.surfelwarp.fusion_kernels import best_in_windows, mark_covered, mark_redundant
     rng = np.random.default_rng(11)
     n, h, w, s = 3000, 96, 128, 4
-    index = np.where(rng.random((h, w)) < 0.8, rng.integers(0, n, (h, w)), -1).astype(np.int32)
-    points = rng.normal(scale=0.004, size=(n, 3)).astype(np.float32)
-    normals = np.tile(np.float32([0, 0, -1]), (n, 1)) + rng.normal(scale=0.2, size=(n, 3)).astype(np.float32)
-    conf = rng.integers(0, 3, n).astype(np.float32)
+    index, points, normals, conf, rows, cols, vertex, normal = random_search_inputs(rng, n, h, w, s, 0.8, 0.9, 0.004)
     radius = rng.uniform(0.005, 0.02, n).astype(np.float32)
-    rows, cols = np.nonzero(rng.random((h // s, w // s)) < 0.9)
-    vertex = rng.normal(scale=0.004, size=(len(rows), 3)).astype(np.float32)
-    normal = np.tile(np.float32([0, 0, -1]), (len(rows), 1))
     gate2 = np.full(len(rows), 0.006 ** 2, np.float32)
     fr, fc = np.nonzero(index >= 0)
     order = rng.permutation(len(fr))          # the surfels in no spatial order: the threads' halves meet
