@@ -322,6 +322,15 @@ def test_compiled_association_equals_the_numpy_reference(problem):
     assert np.array_equal(got.points, ref.points) and np.array_equal(got.normals, ref.normals)
     # In the same layout too: numpy sums differently laid out arrays in another order.
     assert got.points.strides == ref.points.strides and got.normals.strides == ref.normals.strides
+    # The surfels are picked on numba's threads: on one thread the same pairs.
+    import numba
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = associate_components(*args)
+    finally:
+        numba.set_num_threads(before)
+    assert np.array_equal(one.index, got.index) and np.array_equal(one.points, got.points)
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
