@@ -32,9 +32,10 @@ def stillness_map(index_map: np.ndarray, knn: np.ndarray, weights: np.ndarray, n
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _stillness_map(index, knn, weights, node, out):
-    for v in range(index.shape[0]):
+    # each pixel alone, its rows on numba's threads
+    for v in numba.prange(index.shape[0]):
         for u in range(index.shape[1]):
             i = index[v, u]
             if i < 0:
