@@ -114,15 +114,16 @@ def mark_covered(index, s, rows, cols, reach, points, normals, depth_v, depth_n,
                         covered[p] = True
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def fuse_rows(k, pix, depth_v, depth_n, depth_conf, depth_radius, depth_color, time, position, normal, radius,
               confidence, t_observed, color, color_weight):
     """Eq. 5 for pair p (surfel k[p], depth pixel pix[p]; its vertex and normal depth_v[p],
     depth_n[p] in world) into the model's arrays (copies), in float32 and in the order of
     fusion.fuse_reference's numpy expressions, so that the results agree to the bit. Colour
-    (depth_color (H*W, 3), empty without it) fuses with its own weight."""
+    (depth_color (H*W, 3), empty without it) fuses with its own weight. The surfels k are
+    distinct (fusion.fuse), so the pairs run on numba's threads, each writing its own surfel."""
     tiny, floor = np.float32(1e-30), np.float32(1e-12)
-    for p in range(len(k)):
+    for p in numba.prange(len(k)):
         i, c_depth = k[p], depth_conf[pix[p]]
         c_old = confidence[i]
         c_new = c_old + c_depth

@@ -88,9 +88,9 @@ def _take_rows(a: np.ndarray, rows: np.ndarray, out: np.ndarray) -> None:
         np.take(a, rows, axis=0, out=out)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _gather_words(src, rows, out):
-    for i in range(len(rows)):
+    for i in numba.prange(len(rows)):         # each row alone, on numba's threads
         r = rows[i]
         for j in range(src.shape[1]):
             out[i, j] = src[r, j]
