@@ -305,7 +305,10 @@ def test_association_gates_pairs(problem):
 
 def test_compiled_association_equals_the_numpy_reference(problem):
     """Live surfels jittered about both gates (2 cm, cos 0.7) and partly behind the camera or
-    out of view: the compiled pass pairs exactly what associate_reference does."""
+    out of view: the compiled pass pairs exactly what associate_reference does, on one thread
+    and on two."""
+    import numba
+
     from surfelwarp.tracking.association import DepthTargets, associate_components, associate_reference
     rng = np.random.default_rng(8)
     live, live_n = warp(problem.points, problem.normals, problem.knn, problem.weights, problem.field)
@@ -323,7 +326,6 @@ def test_compiled_association_equals_the_numpy_reference(problem):
     # In the same layout too: numpy sums differently laid out arrays in another order.
     assert got.points.strides == ref.points.strides and got.normals.strides == ref.normals.strides
     # The surfels are picked on numba's threads: on one thread the same pairs.
-    import numba
     before = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
