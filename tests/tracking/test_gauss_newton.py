@@ -634,8 +634,19 @@ def test_the_block_jacobi_inverses_are_numpys():
     np.testing.assert_allclose(out, np.linalg.inv(blocks), rtol=1e-7, atol=0)
     np.testing.assert_allclose(np.einsum("nij,njk->nik", out, blocks), np.broadcast_to(np.eye(6), blocks.shape),
                                atol=1e-7)
-    blocks[7, 2, 2] = -1.0      # not positive definite: numpy's inverse takes over
-    assert not _cholesky_inverses(blocks, out)
+    # Two halves of the blocks on numba's threads: on one thread the same bits.
+    import numba
+    before, alone = numba.get_num_threads(), np.empty_like(blocks)
+    try:
+        numba.set_num_threads(1)
+        assert _cholesky_inverses(blocks, alone)
+    finally:
+        numba.set_num_threads(before)
+    assert np.array_equal(alone, out)
+    for bad in (7, 40):         # not positive definite, in either half: numpy's inverse takes over
+        broken = blocks.copy()
+        broken[bad, 2, 2] = -1.0
+        assert not _cholesky_inverses(broken, out)
 
 
 def test_rejects_unknown_linear_solver(problem):
