@@ -1,3 +1,4 @@
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -17,6 +18,18 @@ def gl():
         return gl_context()
     except GLUnavailableError as exc:
         pytest.skip(str(exc))
+
+
+@contextmanager
+def numba_threads(n: int):
+    """Inside the block numba's parallel loops run on n threads (at most as many as it has)."""
+    import numba
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
 
 
 def shared_data(name: str) -> Path:

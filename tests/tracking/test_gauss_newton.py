@@ -16,7 +16,7 @@ from surfelwarp.tracking.linear import _cholesky_inverses, restrict, solve_step
 from surfelwarp.tracking.terms import robust as _robust
 from surfelwarp.tracking.terms.regulariser import reg_jacobian, reg_residuals
 
-from conftest import shared_data
+from conftest import numba_threads, shared_data
 
 INTR = Intrinsics(300.0, 300.0, 159.5, 119.5, 320, 240)
 T_CW = se3_exp(np.array([0.03, -0.05, 0.02, 0.05, -0.03, 0.02]))   # a camera not at the world origin
@@ -307,8 +307,6 @@ def test_compiled_association_equals_the_numpy_reference(problem):
     """Live surfels jittered about both gates (2 cm, cos 0.7) and partly behind the camera or
     out of view: the compiled pass pairs exactly what associate_reference does, on one thread
     and on two."""
-    import numba
-
     from surfelwarp.tracking.association import DepthTargets, associate_components, associate_reference
     rng = np.random.default_rng(8)
     live, live_n = warp(problem.points, problem.normals, problem.knn, problem.weights, problem.field)
@@ -326,12 +324,8 @@ def test_compiled_association_equals_the_numpy_reference(problem):
     # In the same layout too: numpy sums differently laid out arrays in another order.
     assert got.points.strides == ref.points.strides and got.normals.strides == ref.normals.strides
     # The surfels are picked on numba's threads: on one thread the same pairs.
-    before = numba.get_num_threads()
-    try:
-        numba.set_num_threads(1)
+    with numba_threads(1):
         one = associate_components(*args)
-    finally:
-        numba.set_num_threads(before)
     assert np.array_equal(one.index, got.index) and np.array_equal(one.points, got.points)
 
 
@@ -635,13 +629,9 @@ def test_the_block_jacobi_inverses_are_numpys():
     np.testing.assert_allclose(np.einsum("nij,njk->nik", out, blocks), np.broadcast_to(np.eye(6), blocks.shape),
                                atol=1e-7)
     # Two halves of the blocks on numba's threads: on one thread the same bits.
-    import numba
-    before, alone = numba.get_num_threads(), np.empty_like(blocks)
-    try:
-        numba.set_num_threads(1)
+    alone = np.empty_like(blocks)
+    with numba_threads(1):
         assert _cholesky_inverses(blocks, alone)
-    finally:
-        numba.set_num_threads(before)
     assert np.array_equal(alone, out)
     for bad in (7, 40):         # not positive definite, in either half: numpy's inverse takes over
         broken = blocks.copy()

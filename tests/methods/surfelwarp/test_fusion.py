@@ -12,7 +12,7 @@ from surfelwarp.methods.surfelwarp.surfels import SurfelModel
 from surfelwarp.preprocess import preprocess
 from surfelwarp.render.index_map import FusionMaps, render_index_map
 
-from conftest import shared_data
+from conftest import numba_threads, shared_data
 
 K = Intrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
 # Camera pose in world: a turn and a shift, so every test also runs the camera->world transform.
@@ -424,8 +424,6 @@ def test_compiled_searches_do_not_depend_on_the_thread_count():
     """The window search, the duplicate marking and the coverage search, on one thread and on
     two, over random maps where many pixels and surfels compete (the surfels shuffled, so that
     both threads' halves reach the same pixels): the same answers."""
-    import numba
-
     from surfelwarp.methods.surfelwarp.fusion_kernels import best_in_windows, mark_covered, mark_redundant
     rng = np.random.default_rng(11)
     n, h, w, s = 3000, 96, 128, 4
@@ -447,14 +445,10 @@ def test_compiled_searches_do_not_depend_on_the_thread_count():
         mark_covered(index, s, rows, cols, 1, points, normals, vertex, normal, gate2, covered)
         return best_k, best_d2, drop, covered
 
-    before = numba.get_num_threads()
-    try:
-        numba.set_num_threads(1)
+    with numba_threads(1):
         one = answers()
-        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    with numba_threads(2):
         two = answers()
-    finally:
-        numba.set_num_threads(before)
     assert (one[0] >= 0).any() and one[2].any() and one[3].any() and not one[3].all()
     for a, b in zip(one, two):
         assert np.array_equal(a, b)
