@@ -344,6 +344,11 @@ class NormalEquations:
     border: Border | None = None
     coarse: CoarseSpace | None = None   # the PCG preconditioner's cells (coarse.py), if it uses them
 
+    def gradient_norm(self) -> float:
+        """|g| of the variables solved: the free nodes' gradient and the border's."""
+        g = self.gradient[self.free]
+        return float(np.sqrt(np.sum(g * g) + (np.sum(self.border.g ** 2) if self.border is not None else 0.0)))
+
     def blocks(self) -> np.ndarray:
         """The upper blocks (n_upper, 6, 6) to add into in place, and with them a gradient
         (M, 6) to add into (both zeros if no term added yet)."""

@@ -65,8 +65,16 @@ class NonRigidParams:
                                        # (as the GPU solver of Dou et al. that SurfelWarp follows),
                                        # falling back to 'direct' (sparse LU) when it does not
                                        # reach pcg_rtol in pcg_max_iterations; 'direct': LU only
-    pcg_rtol: float = 1e-4             # stop at |(H + mu I) x + g| <= pcg_rtol |g|: steps within
-                                       # ~1e-3 of the exact one, final energies within ~1e-4
+    pcg_rtol: float = 1e-4             # stop at |(H + mu I) x + g| <= pcg_rtol |g_1|, g_1 the
+                                       # solve's first gradient: the first step within ~1e-3 of
+                                       # the exact one, final energies within ~1e-4. A later
+                                       # step (inexact Gauss-Newton) is only a correction of
+                                       # the first: to a tolerance in the solve's units, not
+                                       # its own (7-Scenes: its |g| ~1 % of the first's, its
+                                       # PCG 28-30 -> 11-13 iterations)
+    pcg_max_rtol: float = 1e-2         # ... but never looser than this fraction of its own |g|
+                                       # (as the rest anchors' release step; = pcg_rtol: every
+                                       # step to pcg_rtol of its own)
     pcg_max_iterations: int = 500
     pcg_cell_radii: float = 6.0        # the PCG preconditioner's coarse level (coarse.py) on graphs
                                        # of 500 free nodes or more: nodes grouped by cells of this
@@ -95,7 +103,7 @@ class NonRigidParams:
 
     ZERO_OK = {"lambda_reg", "reg_huber_m", "max_iterations", "min_normal_cos", "stop_motion_m", "stop_energy_rel",
                "damping", "feature_weight", "feature_normal_share", "free_rings", "pcg_cell_radii"}
-    UNIT = {"min_normal_cos", "stop_energy_rel", "pcg_rtol", "feature_normal_share"}
+    UNIT = {"min_normal_cos", "stop_energy_rel", "pcg_rtol", "pcg_max_rtol", "feature_normal_share"}
 
     def __post_init__(self):
         if self.robust not in ROBUST:
@@ -188,6 +196,7 @@ class Solve:
         self.pattern = None
         self.coarse = None
         self.coarse_factor = None
+        self.first_gradient_norm = None
 
     def at(self, field: WarpField, pairs=None, state=None, border_step=None) -> Iterate:
         """The iterate of `field` (its warp state given or computed), associated afresh unless
@@ -228,9 +237,16 @@ class Solve:
         return sum(term.linearize(at, system) for term in self.terms), system
 
     def step(self, system: NormalEquations):
-        """The iteration's step, preconditioned with the solve's first coarse factor."""
+        """The iteration's step, preconditioned with the solve's first coarse factor, to
+        pcg_rtol of the solve's first gradient (NonRigidParams.pcg_max_rtol)."""
         p = self.problem.params
-        step = solve_system(system, p.damping, p.linear_solver, p.pcg_rtol, p.pcg_max_iterations, self.coarse_factor)
+        norm = system.gradient_norm()
+        if self.first_gradient_norm is None:
+            self.first_gradient_norm = norm
+        rtol = p.pcg_rtol
+        if norm > 0:
+            rtol = max(p.pcg_rtol, min(p.pcg_max_rtol, p.pcg_rtol * self.first_gradient_norm / norm))
+        step = solve_system(system, p.damping, p.linear_solver, rtol, p.pcg_max_iterations, self.coarse_factor)
         if self.coarse_factor is None:
             self.coarse_factor = step.coarse
         return step

@@ -206,8 +206,9 @@ def test_the_release_step_is_solved_to_its_own_tolerance(monkeypatch):
 def test_a_solve_factors_its_coarse_level_once_per_kind_of_system(monkeypatch):
     """The PCG's coarse factor is made once for the release test's free step and once for the
     bordered steps, however many Gauss-Newton iterations follow (the first is reused); the
-    field as without the coarse level (block-Jacobi alone): each PCG stops at 1e-4, and over six
-    iterations two nodes' turns differ by 3e-5."""
+    field as without the coarse level (block-Jacobi alone): each PCG stops at 1e-4 of its own
+    gradient (pcg_max_rtol: the later steps too), and over six iterations two nodes' turns
+    differ by 3e-5."""
     import surfelwarp.tracking.gauss_newton as gauss_newton
     import surfelwarp.tracking.linear as linear
     made = []
@@ -219,7 +220,7 @@ def test_a_solve_factors_its_coarse_level_once_per_kind_of_system(monkeypatch):
     anchor = AnchorTerm(np.ones(m), prob.field.transforms.copy(), np.full(m, 2 * axial_noise_sigma_m(1.0)))
     fields = {}
     for radii in (6.0, 0.0):
-        params = gauss_newton.NonRigidParams(pcg_cell_radii=radii)
+        params = gauss_newton.NonRigidParams(pcg_cell_radii=radii, pcg_max_rtol=1e-4)
         fields[radii], res = solve_nonrigid(prob.field, prob.points, prob.normals, prob.knn, prob.weights,
                                             *prob.maps, INTR, T_CW, params=params, anchor=anchor)
         if radii:

@@ -1,4 +1,5 @@
 import time
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -723,3 +724,49 @@ def test_compiled_pcg_equals_the_direct_solve(problem, held, bordered):
     assert not np.any(pcg.xi[~free])
     short = solve_system(system, 1e-4, "pcg", pcg_rtol=1e-10, pcg_max_iterations=2)
     assert short.lu_fallback and np.abs(short.xi - direct.xi).max() < 1e-9 * scale
+
+
+def test_gradient_norm_counts_the_free_nodes_and_the_border():
+    from surfelwarp.tracking.assembly import Border, BlockPattern, NormalEquations
+    graph = np.array([[0, 1], [1, 0], [2, 1]])
+    pattern = BlockPattern(3, graph, np.array([[0, 1], [1, 2]]))
+    g = np.arange(18, dtype=np.float64).reshape(3, 6)
+    free = np.array([True, False, True])
+    system = NormalEquations(pattern, free, np.zeros((3, 6, 8)), None, g)
+    assert system.gradient_norm() == pytest.approx(np.sqrt(np.sum(g[[0, 2]] ** 2)))
+    system.border = Border(np.zeros((3, 6, 6)), np.eye(6), np.full(6, 2.0))
+    assert system.gradient_norm() == pytest.approx(np.sqrt(np.sum(g[[0, 2]] ** 2) + 24.0))
+
+
+def test_later_steps_are_solved_to_the_first_gradients_tolerance(problem, monkeypatch):
+    """Inexact Gauss-Newton: the first step to pcg_rtol of its |g|, a later one to pcg_rtol of the
+    first |g| but never looser than pcg_max_rtol of its own; the field ends where the solve with
+    every step to pcg_rtol ends (pcg_max_rtol = pcg_rtol), to a fraction of the error."""
+    import surfelwarp.tracking.gauss_newton as gn
+    calls = []
+
+    def recording(system, damping, linear_solver, rtol, *args):
+        calls.append((rtol, system.gradient_norm()))
+        return solve_system(system, damping, linear_solver, rtol, *args)
+
+    from surfelwarp.tracking.linear import solve_system
+    monkeypatch.setattr(gn, "solve_system", recording)
+    field = random_field(problem, 0.05, seed=3)
+    params = NonRigidParams(pcg_rtol=1e-4, pcg_max_rtol=1e-1, stop_energy_rel=1e-6)
+    loose, res = problem.solve(params, field)
+    steps = list(calls)
+    calls.clear()
+    tight, res_t = problem.solve(replace(params, pcg_max_rtol=1e-4), field)
+    print(f"steps (rtol, |g|): {[(f'{r:.1e}', f'{n:.2e}') for r, n in steps]}; tight: {len(calls)} steps")
+    first = steps[0][1]
+    assert steps[0][0] == 1e-4 and len(steps) >= 3
+    for rtol, norm in steps[1:]:
+        assert rtol == pytest.approx(min(1e-1, max(1e-4, 1e-4 * first / norm)))
+    assert any(rtol > 1e-3 for rtol, _ in steps[1:])
+    assert all(rtol == 1e-4 for rtol, _ in calls)
+    err_loose, err_tight = problem.error(loose), problem.error(tight)
+    print(f"error mean {err_tight.mean() * 1e3:.3f} (tight) vs {err_loose.mean() * 1e3:.3f} mm (loose); energy "
+          f"{res_t.energy:.6g} vs {res.energy:.6g}")
+    assert res.converged and res_t.converged
+    assert err_loose.mean() < 1.05 * err_tight.mean() + 1e-5
+    assert res.energy == pytest.approx(res_t.energy, rel=1e-3)
