@@ -405,3 +405,28 @@ def test_factoring_against_rest_moves_the_camera_motion_into_the_pose():
     assert deviation_m(factored.transforms[~released], rest[~released], field.sigma_m).max() < 1e-6
     _, C = factor_rigid_motion(moved, support)
     assert np.abs(C - A).max() > 1e-3
+
+
+def test_common_motion_is_the_still_parts_and_leaves_the_moving_part_out():
+    """Known answer: nodes at rest moved by one rigid motion G, a twentieth of them also moved
+    5 cm (a limb): common_motion returns G (the limb drags the first fit by ~2.5 mm, the refits on
+    the nodes within the inlier distance drop it); the inlier test measures each node's farthest anchor
+    point from the rest followed by G, as deviation_m does."""
+    from surfelwarp.tracking.anchors import common_motion, follow_motion
+    rng = np.random.default_rng(5)
+    m, sigma = 400, 0.025
+    nodes = rng.uniform(-0.5, 0.5, (m, 3))
+    rest = np.tile(np.eye(4), (m, 1, 1))
+    rest[:, :3, 3] = rng.normal(0, 1e-3, (m, 3))
+    G = se3_exp(np.array([0.02, -0.01, 0.03, 0.01, -0.02, 0.005]))
+    moved = follow_motion(rest, nodes, G)
+    limb = np.arange(m) < m // 20
+    moved[limb, :3, 3] += [0.05, 0.0, 0.0]
+    inlier = np.full(m, 0.004)
+    found = common_motion(moved, rest, nodes, sigma, np.ones(m), inlier)
+    np.testing.assert_allclose(found, G, atol=1e-9)
+    one_round = common_motion(moved, rest, nodes, sigma, np.ones(m), inlier, rounds=1)
+    assert np.abs(one_round[:3, 3] - G[:3, 3]).max() > 1e-3
+    # a node just inside / outside the inlier distance of G's rest keeps / loses its say
+    dev = deviation_m(moved, follow_motion(rest, nodes, G), sigma)
+    assert dev[~limb].max() < 1e-9 and dev[limb].min() > 0.04
