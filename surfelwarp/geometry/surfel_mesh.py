@@ -125,7 +125,7 @@ def _unpacked(keys: np.ndarray, lo: np.ndarray, dims: np.ndarray) -> np.ndarray:
     return np.stack([keys // (dims[1] * dims[2]), keys // dims[2] % dims[1], keys % dims[2]], 1) + lo
 
 
-def _unique_rows(rows: np.ndarray, **options):
+def unique_rows(rows: np.ndarray, **options):
     """np.unique(rows, axis=0, **options) for (N, 3) integer rows, the same arrays: the rows
     packed into one int64 each in lexicographic order when they fit (numpy sorts rows as
     opaque records, several times slower), else by rows."""
@@ -155,7 +155,7 @@ def _chunked_marching_cubes(cells: np.ndarray, sdf: np.ndarray, voxel_m: float,
         owners.append(owner)
         rows.append(np.flatnonzero(shared))
     owner, row = np.concatenate(owners), np.concatenate(rows)
-    keys, inverse = _unique_rows(owner, return_inverse=True)
+    keys, inverse = unique_rows(owner, return_inverse=True)
     order = np.argsort(inverse.reshape(-1), kind="stable")
     bounds = np.searchsorted(inverse.reshape(-1)[order], np.arange(len(keys) + 1))
     all_vertices, all_faces, count = [], [], 0
@@ -185,7 +185,7 @@ def _chunked_marching_cubes(cells: np.ndarray, sdf: np.ndarray, voxel_m: float,
     vertices, faces = np.concatenate(all_vertices), np.concatenate(all_faces)
     # Merge the vertices two chunks made on their shared face, and drop unused ones.
     q = np.rint(vertices / voxel_m * 1024).astype(np.int64)
-    _, first, remap = _unique_rows(q, return_index=True, return_inverse=True)
+    _, first, remap = unique_rows(q, return_index=True, return_inverse=True)
     faces = remap.reshape(-1)[faces]
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
     used, faces = np.unique(faces, return_inverse=True)

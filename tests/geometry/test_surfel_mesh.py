@@ -93,11 +93,11 @@ def test_cells_near_are_the_64_neighbours_of_every_surfels_cell_once_in_order():
 
 @pytest.mark.parametrize("options", [{}, {"return_inverse": True}, {"return_index": True, "return_inverse": True}])
 def test_unique_rows_are_numpys_unique_by_rows(options):
-    from surfelwarp.geometry.surfel_mesh import _unique_rows
+    from surfelwarp.geometry.surfel_mesh import unique_rows
     rng = np.random.default_rng(3)
     for rows in (rng.integers(-9, 9, size=(5000, 3)), rng.integers(0, 3, size=(1, 3)), np.zeros((0, 3), np.int64),
                  np.array([[-2**40, 0, 2**40], [2**40, 0, -2**40], [-2**40, 0, 2**40]])):   # too wide to pack
-        expected, got = np.unique(rows, axis=0, **options), _unique_rows(rows, **options)
+        expected, got = np.unique(rows, axis=0, **options), unique_rows(rows, **options)
         expected, got = (expected, got) if options else ((expected,), (got,))
         assert len(got) == len(expected)
         for a, b in zip(expected, got):

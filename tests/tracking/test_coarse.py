@@ -172,3 +172,14 @@ def test_an_earlier_coarse_factor_preconditions_a_changed_system(monkeypatch):
     _, other_cells = system(bordered=True)
     assert solve_system(other_cells, 1e-6, "pcg", coarse=earlier.coarse).coarse is not earlier.coarse
     assert len(made) == 5
+
+
+@pytest.mark.parametrize("k, n", [(1, 50), (7, 0), (7, 3000), (600, 60000)])
+def test_unique_pairs_are_numpys_unique(k, n):
+    from surfelwarp.tracking.coarse import unique_pairs
+    rng = np.random.default_rng(k + n)
+    keys = rng.integers(0, k, n) * k + rng.integers(0, k, n)
+    unique, inverse = unique_pairs(keys, k)
+    expected, expected_inverse = np.unique(keys, return_inverse=True)
+    np.testing.assert_array_equal(unique, expected)
+    np.testing.assert_array_equal(inverse, expected_inverse)
