@@ -58,45 +58,51 @@ def coarse_space(nodes: np.ndarray, free: np.ndarray, lo: np.ndarray, hi: np.nda
     offset = np.where(free[:, None], nodes - centre[np.maximum(cell, 0)], 0.0)
     both = free[lo] & free[hi]
     ca, cb = cell[lo], cell[hi]
-    keys = np.minimum(ca, cb) * k + np.maximum(ca, cb)
-    pairs, inverse = unique_pairs(np.concatenate([keys[both], np.arange(k) * (k + 1)]), k)
+    first, second = (np.concatenate([f(ca, cb)[both], np.arange(k)]) for f in (np.minimum, np.maximum))
+    pairs, inverse = unique_pairs(first, second, k)
     slot = np.full(len(lo), -1, np.int64)
     slot[both] = inverse[: int(both.sum())]
     diag = np.searchsorted(pairs, np.arange(k) * (k + 1))
     return CoarseSpace(cell, offset, k, slot, both & (ca > cb), diag, pairs // k, pairs % k)
 
 
-def unique_pairs(keys: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """np.unique(keys, return_inverse=True) of keys a * k + b (0 <= a, b < k): bucketed by a,
-    then each bucket sorted (numpy's sort of a room's 60k keys took ~4 ms, this ~1)."""
-    keys = np.ascontiguousarray(keys, np.int64)
-    unique, inverse = np.empty(len(keys), np.int64), np.empty(len(keys), np.int64)
-    n = _unique_pairs(keys, int(k), unique, inverse)
+def unique_pairs(first: np.ndarray, second: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """np.unique(first * k + second, return_inverse=True) for 0 <= first, second < k, by two
+    counting sorts (a room's 60k pairs: np.unique 3.7 ms, this 0.6)."""
+    first, second = (np.ascontiguousarray(a, np.int64) for a in (first, second))
+    unique, inverse = np.empty(len(first), np.int64), np.empty(len(first), np.int64)
+    n = _unique_pairs(first, second, int(k), unique, inverse)
     return unique[:n], inverse
 
 
 @numba.njit(cache=True, nogil=True)
-def _unique_pairs(keys, k, unique, inverse):
-    start = np.zeros(k + 1, np.int64)
-    for key in keys:
-        start[key // k + 1] += 1
-    start = np.cumsum(start)
-    order = np.empty(len(keys), np.int64)
-    fill = start[:-1].copy()
-    for i in range(len(keys)):
-        a = keys[i] // k
-        order[fill[a]] = i
-        fill[a] += 1
+def _unique_pairs(first, second, k, unique, inverse):
+    # Two stable counting sorts (by second, then by first): the pairs in np.unique's order.
+    by_second = _counting_order(second, np.arange(len(second)), k)
+    order = _counting_order(first, by_second, k)
     n = 0
-    for a in range(k):
-        bucket = order[start[a]:start[a + 1]]
-        bucket = bucket[np.argsort(keys[bucket] % k)]
-        for i in bucket:
-            if n == 0 or unique[n - 1] != keys[i]:
-                unique[n] = keys[i]
-                n += 1
-            inverse[i] = n - 1
+    for i in order:
+        key = first[i] * k + second[i]
+        if n == 0 or unique[n - 1] != key:
+            unique[n] = key
+            n += 1
+        inverse[i] = n - 1
     return n
+
+
+@numba.njit(cache=True, nogil=True)
+def _counting_order(values, items, k):
+    """items stably sorted by values[items] (0 <= values < k)."""
+    start = np.zeros(k + 1, np.int64)
+    for i in items:
+        start[values[i] + 1] += 1
+    for a in range(k):
+        start[a + 1] += start[a]
+    out = np.empty(len(items), np.int64)
+    for i in items:
+        out[start[values[i]]] = i
+        start[values[i]] += 1
+    return out
 
 
 @dataclass(frozen=True)

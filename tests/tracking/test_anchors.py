@@ -409,9 +409,8 @@ def test_factoring_against_rest_moves_the_camera_motion_into_the_pose():
 
 def test_common_motion_is_the_still_parts_and_leaves_the_moving_part_out():
     """Known answer: nodes at rest moved by one rigid motion G, a twentieth of them also moved
-    5 cm (a limb): common_motion returns G (the limb drags the first fit by ~2.5 mm, the refits on
-    the nodes within the inlier distance drop it); the inlier test measures each node's farthest anchor
-    point from the rest followed by G, as deviation_m does."""
+    5 cm (a limb): common_motion returns G (the limb drags the first fit by ~2.5 mm, the refits
+    on the nodes within the inlier distance drop it)."""
     from surfelwarp.tracking.anchors import common_motion, follow_motion
     rng = np.random.default_rng(5)
     m, sigma = 400, 0.025
@@ -427,6 +426,6 @@ def test_common_motion_is_the_still_parts_and_leaves_the_moving_part_out():
     np.testing.assert_allclose(found, G, atol=1e-9)
     one_round = common_motion(moved, rest, nodes, sigma, np.ones(m), inlier, rounds=1)
     assert np.abs(one_round[:3, 3] - G[:3, 3]).max() > 1e-3
-    # a node just inside / outside the inlier distance of G's rest keeps / loses its say
+    # the still nodes on G's rest, the limb's 5 cm off it (deviation_m, what the refits test)
     dev = deviation_m(moved, follow_motion(rest, nodes, G), sigma)
     assert dev[~limb].max() < 1e-9 and dev[limb].min() > 0.04

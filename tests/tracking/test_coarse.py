@@ -178,8 +178,8 @@ def test_an_earlier_coarse_factor_preconditions_a_changed_system(monkeypatch):
 def test_unique_pairs_are_numpys_unique(k, n):
     from surfelwarp.tracking.coarse import unique_pairs
     rng = np.random.default_rng(k + n)
-    keys = rng.integers(0, k, n) * k + rng.integers(0, k, n)
-    unique, inverse = unique_pairs(keys, k)
-    expected, expected_inverse = np.unique(keys, return_inverse=True)
+    first, second = rng.integers(0, k, n), rng.integers(0, k, n)
+    unique, inverse = unique_pairs(first, second, k)
+    expected, expected_inverse = np.unique(first * k + second, return_inverse=True)
     np.testing.assert_array_equal(unique, expected)
     np.testing.assert_array_equal(inverse, expected_inverse)

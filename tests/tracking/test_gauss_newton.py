@@ -743,13 +743,13 @@ def test_later_steps_are_solved_to_the_first_gradients_tolerance(problem, monkey
     first |g| but never looser than pcg_max_rtol of its own; the field ends where the solve with
     every step to pcg_rtol ends (pcg_max_rtol = pcg_rtol), to a fraction of the error."""
     import surfelwarp.tracking.gauss_newton as gn
+    from surfelwarp.tracking.linear import solve_system
     calls = []
 
     def recording(system, damping, linear_solver, rtol, *args):
         calls.append((rtol, system.gradient_norm()))
         return solve_system(system, damping, linear_solver, rtol, *args)
 
-    from surfelwarp.tracking.linear import solve_system
     monkeypatch.setattr(gn, "solve_system", recording)
     field = random_field(problem, 0.05, seed=3)
     params = NonRigidParams(pcg_rtol=1e-4, pcg_max_rtol=1e-1, stop_energy_rel=1e-6)
