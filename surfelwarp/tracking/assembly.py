@@ -51,9 +51,6 @@ class BlockPattern:
         self.edge_flip = ei > ej
         self.reg_slots = np.stack([self.keys(ei, ei), self.keys(ej, ej),
                                    self.keys(np.minimum(ei, ej), np.maximum(ei, ej))])
-        slots = self.reg_slots.reshape(-1)
-        sign = np.repeat([1.0, 1.0, -1.0], len(ei))
-        self._reg_scatter = sp.csc_matrix((sign, slots, np.arange(len(slots) + 1)), shape=(self.n_upper, len(slots)))
 
     def keys(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Upper block index of node pairs lo <= hi (which must be in the pattern; -1 if not)."""
@@ -70,7 +67,11 @@ class BlockPattern:
         return P @ values
 
     def reg_blocks(self, values: np.ndarray) -> np.ndarray:
-        return self._reg_scatter @ values
+        """The regulariser edges' (i,i), (j,j), (i,j) block parts (3 * edges, V) summed into their
+        slots, (i,j) negated (the numpy form: the solve sums its edges in compiled code)."""
+        slots = self.reg_slots.reshape(-1)
+        sign = np.repeat([1.0, 1.0, -1.0], len(self.edge_i))
+        return sp.csc_matrix((sign, slots, np.arange(len(slots) + 1)), shape=(self.n_upper, len(slots))) @ values
 
     def matrix(self, upper: np.ndarray) -> sp.bsr_matrix:
         """The symmetric (6M, 6M) BSR matrix of upper blocks (n_upper, 6, 6)."""
