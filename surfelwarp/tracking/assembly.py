@@ -8,6 +8,7 @@ pair_blocks is the form of every residual that moves a point by [-[y]x, I] xi.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numba
 import numpy as np
@@ -17,6 +18,7 @@ from surfelwarp.geometry.dual_quaternion import _components
 from surfelwarp.geometry.se3 import skew
 from surfelwarp.tracking.assembly_kernels import point_sums_split, sandwich
 from surfelwarp.tracking.blend_jacobian import residual_rows
+from surfelwarp.tracking.coarse import counting_order
 from surfelwarp.tracking.coarse import CoarseSpace
 
 
@@ -51,6 +53,20 @@ class BlockPattern:
         self.edge_flip = ei > ej
         self.reg_slots = np.stack([self.keys(ei, ei), self.keys(ej, ej),
                                    self.keys(np.minimum(ei, ej), np.maximum(ei, ej))])
+
+    @cached_property
+    def reg_writes(self) -> tuple:
+        """The regulariser's writes (terms/regulariser.py) grouped by destination, each group in
+        the order of one pass over the edges: where each block's writes start (n_upper + 1), the
+        writes 3 e + k into block reg_slots[k, e]; where each node's gradient writes start, the
+        writes 2 e + 0 into the row of edge_i[e] and 2 e + 1 into that of edge_j[e]."""
+        out = []
+        for targets, count in ((self.reg_slots.T.reshape(-1), self.n_upper),
+                               (np.stack([self.edge_i, self.edge_j], 1).reshape(-1), self.num_nodes)):
+            targets = np.ascontiguousarray(targets, np.int64)
+            start = np.concatenate([[0], np.cumsum(np.bincount(targets, minlength=count))])
+            out += [start, counting_order(targets, np.arange(len(targets)), count)]
+        return tuple(out)
 
     def keys(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Upper block index of node pairs lo <= hi (which must be in the pattern; -1 if not)."""

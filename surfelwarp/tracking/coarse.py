@@ -78,8 +78,8 @@ def unique_pairs(first: np.ndarray, second: np.ndarray, k: int) -> tuple[np.ndar
 @numba.njit(cache=True, nogil=True)
 def _unique_pairs(first, second, k, unique, inverse):
     # Two stable counting sorts (by second, then by first): the pairs in np.unique's order.
-    by_second = _counting_order(second, np.arange(len(second)), k)
-    order = _counting_order(first, by_second, k)
+    by_second = counting_order(second, np.arange(len(second)), k)
+    order = counting_order(first, by_second, k)
     n = 0
     for i in order:
         key = first[i] * k + second[i]
@@ -91,7 +91,7 @@ def _unique_pairs(first, second, k, unique, inverse):
 
 
 @numba.njit(cache=True, nogil=True)
-def _counting_order(values, items, k):
+def counting_order(values, items, k):
     """items stably sorted by values[items] (0 <= values < k)."""
     start = np.zeros(k + 1, np.int64)
     for i in items:

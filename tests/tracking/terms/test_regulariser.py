@@ -92,3 +92,42 @@ def test_huber_gradient_matches_finite_differences():
                           max(np.abs(system.gradient).max(), 1e-12))
     print(f"Huber regulariser gradient vs central differences: max error {max(errors):.1e} of the largest")
     assert max(errors) < 1e-5
+
+
+def _one_pass(field, pattern, lam, huber_m, upper, grad):
+    """The regulariser's sums as one pass over the edges makes them, in Python (the order the
+    compiled sums, grouped by block and node on two threads, must reproduce to the bit)."""
+    from surfelwarp.tracking.assembly_kernels import add_gradient, add_pair
+    from surfelwarp.tracking.terms.regulariser import _edge, _penalty
+    p, L = field.nodes.astype(np.float64), field.transforms
+    total = 0.0
+    for e in range(len(pattern.edge_j)):
+        j, i = pattern.edge_j[e], pattern.edge_i[e]
+        a, t, r = np.empty(3), np.empty(3), np.empty(3)
+        cost, w = _penalty(_edge(p, L, j, i, a, t, r), huber_m, lam)
+        total += cost
+        s0, s1, s2 = pattern.reg_slots[:, e]
+        add_pair(upper[s0], a, a, w)
+        add_pair(upper[s1], t, t, w)
+        add_pair(upper[s2], *((t, a) if pattern.edge_flip[e] else (a, t)), -w)
+        add_gradient(grad[i], a, r, w)
+        add_gradient(grad[j], t, r, -w)
+    return total
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_compiled_sums_are_one_pass_over_the_edges_on_any_thread_count(threads):
+    from conftest import numba_threads
+    rng = np.random.default_rng(4)
+    field = bent_field(5)
+    pattern = BlockPattern(field.num_nodes, field.graph, rng.integers(0, field.num_nodes, (300, 4)))
+    huber_m = float(np.median(edge_lengths(field)))
+    start = rng.normal(size=(pattern.n_upper, 6, 6)), rng.normal(size=(field.num_nodes, 6))
+    expected_upper, expected_grad = start[0].copy(), start[1].copy()
+    expected = _one_pass(field, pattern, 3.0, huber_m, expected_upper, expected_grad)
+    system = NormalEquations(pattern, np.ones(field.num_nodes, bool), None)
+    system.add(start[1].copy(), upper=start[0].copy())
+    with numba_threads(threads):
+        energy = RegulariserTerm(3.0, huber_m).linearize(iterate(field), system)
+    assert np.array_equal(system.upper, expected_upper) and np.array_equal(system.gradient, expected_grad)
+    assert energy == 3.0 * expected
