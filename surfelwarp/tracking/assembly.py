@@ -18,8 +18,7 @@ from surfelwarp.geometry.dual_quaternion import _components
 from surfelwarp.geometry.se3 import skew
 from surfelwarp.tracking.assembly_kernels import point_sums_split, sandwich
 from surfelwarp.tracking.blend_jacobian import residual_rows
-from surfelwarp.tracking.coarse import counting_order
-from surfelwarp.tracking.coarse import CoarseSpace
+from surfelwarp.tracking.coarse import CoarseSpace, counting_order
 
 
 class BlockPattern:

@@ -86,9 +86,9 @@ def _add_regulariser(p, L, edge_j, edge_i, flip, lam, huber_m, block_start, bloc
     blocks (i, i) += pair(a, a), (j, j) += pair(t, t), (i, j) -= pair(a, t) (stored as (j, i)
     -= pair(t, a) when j < i); gradient i += (a x r, r), j -= (t x r, r). pair(u, v) is
     [[(u.v) I - v u^T, [u]x], [-[v]x, I]]. The edges first, then each block and gradient row
-    from its writes in edge order (BlockPattern.reg_writes), the blocks and the rows in two halves on
-    numba's threads: every sum as one pass over the edges makes it, on any thread count
-    (70k edges on 9k nodes: 11.9 -> 5.1 ms a call)."""
+    from its writes in edge order (BlockPattern.reg_writes), the blocks and the rows in two
+    halves on numba's threads: every sum as one pass over the edges makes it, on any thread
+    count (70k edges on 9k nodes: 11.9 -> 5.1 ms a call)."""
     n = len(edge_j)
     a, t, r = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
     cost, w = np.empty(n), np.empty(n)
