@@ -59,13 +59,10 @@ class BlockPattern:
         the order of one pass over the edges: where each block's writes start (n_upper + 1), the
         writes 3 e + k into block reg_slots[k, e]; where each node's gradient writes start, the
         writes 2 e + 0 into the row of edge_i[e] and 2 e + 1 into that of edge_j[e]."""
-        out = []
-        for targets, count in ((self.reg_slots.T.reshape(-1), self.n_upper),
-                               (np.stack([self.edge_i, self.edge_j], 1).reshape(-1), self.num_nodes)):
-            targets = np.ascontiguousarray(targets, np.int64)
-            start = np.concatenate([[0], np.cumsum(np.bincount(targets, minlength=count))])
-            out += [start, counting_order(targets, np.arange(len(targets)), count)]
-        return tuple(out)
+        blocks = np.ascontiguousarray(self.reg_slots.T, np.int64).reshape(-1)
+        nodes = np.stack([self.edge_i, self.edge_j], 1).reshape(-1)
+        return (counting_order(blocks, np.arange(len(blocks)), self.n_upper)
+                + counting_order(nodes, np.arange(len(nodes)), self.num_nodes))
 
     def keys(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Upper block index of node pairs lo <= hi (which must be in the pattern; -1 if not)."""

@@ -78,8 +78,8 @@ def unique_pairs(first: np.ndarray, second: np.ndarray, k: int) -> tuple[np.ndar
 @numba.njit(cache=True, nogil=True)
 def _unique_pairs(first, second, k, unique, inverse):
     # Two stable counting sorts (by second, then by first): the pairs in np.unique's order.
-    by_second = counting_order(second, np.arange(len(second)), k)
-    order = counting_order(first, by_second, k)
+    _, by_second = counting_order(second, np.arange(len(second)), k)
+    _, order = counting_order(first, by_second, k)
     n = 0
     for i in order:
         key = first[i] * k + second[i]
@@ -92,17 +92,19 @@ def _unique_pairs(first, second, k, unique, inverse):
 
 @numba.njit(cache=True, nogil=True)
 def counting_order(values, items, k):
-    """items stably sorted by values[items] (0 <= values < k)."""
+    """(where each value's items start (k + 1), items stably sorted by values[items]), for
+    0 <= values < k."""
     start = np.zeros(k + 1, np.int64)
     for i in items:
         start[values[i] + 1] += 1
     for a in range(k):
         start[a + 1] += start[a]
+    fill = start[:-1].copy()
     out = np.empty(len(items), np.int64)
     for i in items:
-        out[start[values[i]]] = i
-        start[values[i]] += 1
-    return out
+        out[fill[values[i]]] = i
+        fill[values[i]] += 1
+    return start, out
 
 
 @dataclass(frozen=True)
