@@ -67,3 +67,51 @@ def test_a_bad_frame_is_reported_at_its_turn(tmp_path):
     assert [next(frames)[0], next(frames)[0]] == [0, 1]         # frame 2 was read during frame 1
     with pytest.raises(InputError, match=seq.files[2].depth.name):
         next(frames)
+
+
+FAULTS_OF_CYCLES = """
+import resource
+import numba
+import numpy as np
+from surfelwarp.run import keep_freed_memory
+
+@numba.njit
+def block():        # a compiled kernel's array: malloc'd, not madvised to huge pages as numpy's
+    return np.ones(1 << 22)
+
+def faults_of_cycles():
+    block()
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(2):      # two 32 MB blocks written and freed
+        block()
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+default = faults_of_cycles()
+took = keep_freed_memory()
+print(default, took, faults_of_cycles())
+"""
+
+
+def _faults_of_cycles(env: dict) -> tuple[int, bool, int]:
+    import subprocess
+    out = subprocess.run([sys.executable, "-c", FAULTS_OF_CYCLES], env=env, capture_output=True, text=True,
+                         check=True).stdout.split()
+    return int(out[0]), out[1] == "True", int(out[2])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_freed_memory_is_reused_without_page_faults():
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "GLIBC_TUNABLES"}
+    default, took, kept = _faults_of_cycles(env)
+    if not took:
+        pytest.skip("the C library has no glibc mallopt")
+    pages = 2 * (1 << 25) // os.sysconf("SC_PAGE_SIZE")
+    assert default > 0.9 * pages                # each block mapped afresh: every page faults
+    assert kept < 0.05 * pages                  # the freed block reused
+
+
+def test_a_malloc_setting_of_the_user_is_kept():
+    env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"}
+    env["MALLOC_TRIM_THRESHOLD_"] = str(128 * 1024)
+    default, took, kept = _faults_of_cycles(env)
+    assert not took
