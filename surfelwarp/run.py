@@ -102,7 +102,7 @@ def keep_freed_memory() -> bool:
     returning them to the kernel (glibc; elsewhere, or where the user set MALLOC_* or
     GLIBC_TUNABLES, nothing); whether it took. A frame allocates and frees tens of MB of arrays
     in blocks glibc maps afresh and unmaps on free, so every page of them faulted again at its
-    first write: on 7-Scenes ~18k minor faults a frame, ~60 ms of system time (the solver
+    first write: on 7-Scenes 16-18k minor faults a frame, 45-60 ms of system time (the solver
     maps' gather alone 4.8 -> 1.3 ms a call). The process keeps its peak heap instead."""
     tunables = os.environ.get("GLIBC_TUNABLES", "")
     if any(k.startswith("MALLOC_") for k in os.environ) or "malloc" in tunables:
