@@ -24,8 +24,8 @@ from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
 from surfelwarp.deform.skinning_kernels import may_change, near_cells, occupancy
-from surfelwarp.geometry.dq_kernels import blend_apply
-from surfelwarp.geometry.dual_quaternion import dq_blend_indexed, dq_from_transform, dq_to_transform
+from surfelwarp.geometry.dq_kernels import blend_apply, dq_from_transforms
+from surfelwarp.geometry.dual_quaternion import dq_blend_indexed, dq_to_transform
 from surfelwarp.geometry.se3 import se3_exp
 
 _CHUNK = 1 << 16   # points per warp batch: bounds the float64 copies of float32 inputs
@@ -84,7 +84,7 @@ class WarpField:
         the inverse warps of fusion and appending)."""
         dqs = self.__dict__.get("_dual_quaternions")
         if dqs is None:
-            dqs = dq_from_transform(self.global_transforms())
+            dqs = dq_from_transforms(self.global_transforms())
             dqs.flags.writeable = False
             object.__setattr__(self, "_dual_quaternions", dqs)   # frozen: set once, as a cache
         return dqs

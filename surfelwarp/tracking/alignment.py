@@ -192,9 +192,10 @@ def measure(points_world: np.ndarray, normals_world: np.ndarray, T_camera_to_wor
     (camera-frame maps) seen from T_camera_to_world."""
     T = np.asarray(T_camera_to_world, np.float64)
     R, t = T[:3, :3].T, -T[:3, :3].T @ T[:3, 3]
-    p, n = _rigid(R, t, points_world), _rigid(R, np.zeros(3), normals_world)
+    p = _rigid(R, t, points_world)
     step = max(1, -(-len(p) // params.max_judged_points))
-    judged, supported = model_support(p[::step], n[::step], depth_m, vertex_map, valid, intrinsics, params)
+    n = _rigid(R, np.zeros(3), np.asarray(normals_world)[::step])     # only the judged share's
+    judged, supported = model_support(p[::step], n, depth_m, vertex_map, valid, intrinsics, params)
     explained = explained_pixels(p, vertex_map, valid, intrinsics, params)
     judged_count, valid_count = int(judged.sum()), int(valid.sum())
     return Alignment(float(1.0 - supported.sum() / judged_count) if judged_count else 0.0,

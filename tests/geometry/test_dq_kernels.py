@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from surfelwarp.geometry.dq_kernels import blend_apply
+from surfelwarp.geometry.dq_kernels import blend_apply, dq_from_transforms
 from surfelwarp.geometry.dual_quaternion import _components, apply_components, dq_blend_indexed, dq_from_transform
 from surfelwarp.geometry.se3 import se3_exp
 
@@ -47,3 +47,20 @@ def test_blend_apply_without_normals_and_shape_errors(blend_case):
         blend_apply(dqs, knn, weights, points.T)
     with pytest.raises(ValueError):
         blend_apply(dqs, knn, weights[:, :2], points)
+
+
+def test_dq_from_transforms_is_the_numpy_form_to_the_bit():
+    """The compiled conversion gives dq_from_transform's bits for every branch of Shepperd's
+    choice: small and large turns, turns within 1e-9 of 180 degrees about random axes (w ~ 0,
+    another component the largest), the identity; and an empty batch."""
+    rng = np.random.default_rng(6)
+    axis = rng.normal(size=(300, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    near_pi = axis * (np.pi - 10.0 ** rng.uniform(-9, -1, (300, 1)))
+    xi = np.concatenate([np.concatenate([rng.normal(size=(900, 3)) * np.repeat([1e-6, 0.3, 3.0], 300)[:, None],
+                                         near_pi]), rng.normal(size=(1200, 3))], 1)
+    T = np.concatenate([se3_exp(xi), np.eye(4)[None]])
+    expect = dq_from_transform(T)
+    assert np.array_equal(dq_from_transforms(T), expect)
+    assert len(set(np.argmax(np.abs(expect[:, :4]), axis=1))) == 4       # every branch taken
+    assert dq_from_transforms(np.zeros((0, 4, 4))).shape == (0, 8)

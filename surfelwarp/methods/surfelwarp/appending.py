@@ -47,6 +47,7 @@ from pykdtree.kdtree import KDTree
 
 from surfelwarp.deform.warp_field import WarpField, inverse_warp
 from surfelwarp.geometry.dual_quaternion import dq_to_transform
+from surfelwarp.methods.surfelwarp.appending_kernels import NO_NODE, strains
 from surfelwarp.methods.surfelwarp.surfels import SurfelModel
 from surfelwarp.preprocess import CameraObservation
 
@@ -221,7 +222,23 @@ def _singular_values(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _strains(x: np.ndarray, knn: np.ndarray, weights: np.ndarray, idx: np.ndarray, d2: np.ndarray,
              field: WarpField, params: "AppendParams") -> tuple[np.ndarray, np.ndarray]:
-    """inverse_strains, given the unpruned live neighbours idx / d2 of _live_neighbours."""
+    """inverse_strains, given the unpruned live neighbours idx / d2 of _live_neighbours, in
+    compiled code (appending_kernels.py; _strains_reference is its numpy form)."""
+    n, k = len(x), idx.shape[1]
+    sigma = field.sigma_m
+    h = 0.1 * sigma if params.strain_step_m is None else params.strain_step_m
+    x_ref, _ = inverse_warp(x, None, knn, weights, field)
+    _, ref_idx = KDTree(field.nodes).query(x_ref.astype(np.float32), k=min(k, field.num_nodes))
+    live_side, ref_side = np.empty(n), np.empty(n)
+    strains(np.ascontiguousarray(x, np.float64), np.where(np.isfinite(d2), idx, NO_NODE), field.live_nodes(),
+            np.ascontiguousarray(x_ref, np.float64), ref_idx.reshape(n, -1).astype(np.int64),
+            field.nodes.astype(np.float64), field.dual_quaternions(), float(sigma), float(h), live_side, ref_side)
+    return live_side, ref_side
+
+
+def _strains_reference(x: np.ndarray, knn: np.ndarray, weights: np.ndarray, idx: np.ndarray, d2: np.ndarray,
+                       field: WarpField, params: "AppendParams") -> tuple[np.ndarray, np.ndarray]:
+    """_strains in numpy: the reference its compiled form is tested on."""
     n, k = len(x), idx.shape[1]
     sigma = field.sigma_m
     h = 0.1 * sigma if params.strain_step_m is None else params.strain_step_m

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
 
-from surfelwarp.methods.surfelwarp.appending import (AppendParams, append_candidates, compressive_mask,
-                                                     inverse_strains, skin_live)
+from surfelwarp.methods.surfelwarp.appending import (AppendParams, _live_neighbours, _strains, _strains_reference,
+                                                     append_candidates, compressive_mask, inverse_strains, skin_live)
 from surfelwarp.deform.warp_field import WarpField, WarpFieldParams, inverse_warp, skin, to_local, warp
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import invert, se3_exp
 from surfelwarp.preprocess import preprocess
 
-from conftest import shared_data
+from conftest import numba_threads, shared_data
 
 SIGMA = WarpFieldParams().sigma
 EPS = AppendParams().intrinsic_epsilon
@@ -209,6 +209,48 @@ def test_open_to_close_contact_is_compressive():
     # A pointwise derivative has blind spots where the blend fraction of the other sheet is
     # locally flat (here ~1% of the misplaced candidates).
     assert flagged[wrong].mean() > 0.97
+
+
+@pytest.mark.parametrize("scene", ["smooth", "half turn", "contact", "three nodes"])
+def test_compiled_strains_match_the_numpy_reference(scene):
+    """The compiled strains (appending_kernels.py) are the numpy reference's to rounding, on a
+    smooth warp, the same turned by ~180 degrees (neighbouring nodes' quaternions antipodal:
+    the blend's sign fix), two sheets brought into contact, and a field with fewer nodes than
+    skinning slots (empty slots); and the same bits on one thread and on two."""
+    if scene in ("smooth", "half turn"):
+        field = smooth_motion(WarpField.from_points(wavy_sheet()), 2.0)
+        if scene == "half turn":
+            turn = se3_exp(np.array([np.pi - 0.05, 0, 0, 0, 0, 0]))
+            field = field.with_transforms(to_local(turn @ field.global_transforms(), field.nodes))
+            q = field.dual_quaternions()
+            assert (np.einsum("ni,nki->nk", q[:, :4], q[field.graph][..., :4]) < 0).any()
+        knn0, w0 = skin(wavy_sheet(0.013, 0.18, seed=9), field.nodes, 4, SIGMA)
+        live, _ = warp(wavy_sheet(0.013, 0.18, seed=9), None, knn0, w0, field)
+    elif scene == "contact":
+        a, b = wavy_sheet(0.008, 0.15, z=1.0), wavy_sheet(0.008, 0.15, z=0.9, seed=4) + [0.3, 0.0, 0.0]
+        field = WarpField.from_points(np.concatenate([a, b]))
+        G = np.tile(np.eye(4), (field.num_nodes, 1, 1))
+        G[field.nodes[:, 2] < 0.95, :3, 3] = [-0.3, 0.0, 0.095]
+        field = field.with_transforms(to_local(G, field.nodes))
+        live = np.concatenate([a, b + [-0.3, 0.0, 0.095]])
+    else:
+        field, live_x, _ = squeezed_line(0.5, n=3, first=0, last=1)
+        live = points_along_line(np.linspace(-0.01, 0.06, 200))
+    knn, w, _ = skin_live(live, field, 4)
+    idx, d2 = _live_neighbours(live, field, 4)
+    params = AppendParams()
+    expect = _strains_reference(live, knn, w, idx, d2, field, params)
+    with numba_threads(1):
+        one = _strains(live, knn, w, idx, d2, field, params)
+    with numba_threads(2):
+        two = _strains(live, knn, w, idx, d2, field, params)
+    err = [np.abs(one[i] - expect[i]).max() / np.abs(expect[i]).max() for i in range(2)]
+    print(f"{scene}: {len(live)} candidates, {field.num_nodes} nodes, relative error live side {err[0]:.1e}, "
+          f"reference side {err[1]:.1e}; strains up to {one[0].max():.3f} / {one[1].max():.3f}")
+    assert err[0] < 1e-9 and err[1] < 1e-9
+    assert all(np.array_equal(one[i], two[i]) for i in range(2))
+    if scene != "three nodes":
+        assert max(one[0].max(), one[1].max()) > 1 + EPS       # the scene has compressive candidates
 
 
 # ---------------------------------------------------------------------------------- Sec. VI-D
