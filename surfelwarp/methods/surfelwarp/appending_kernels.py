@@ -3,7 +3,8 @@ perturbed dual quaternion blends of both sides, their central differences and th
 extreme singular values, in one pass with no (6, N, k) or (6, N, 4, 4) temporaries.
 appending._strains_reference computes the same in numpy (the reference the tests compare this
 with, to rounding: the sums here run in another order). A room's ~3.7k candidates a frame
-(7-Scenes, captured calls) took 26-32 ms in numpy, 4-5 ms here with the tree and inverse warp."""
+(7-Scenes, captured calls) took 26-32 ms in numpy, ~6 ms here with the inverse warp and the
+reference nodes' tree (~2 of it)."""
 from __future__ import annotations
 
 import numba
@@ -50,10 +51,10 @@ def _signs(dqs, idx, count, w, signs):
 
 
 @numba.njit(cache=True, inline="always")
-def _warped(x0, x1, x2, dqs, idx, count, w, signs, inverse, out, a):
-    """The blend of the slots' dual quaternions with weights w applied to the point, or its
-    inverse (R^T (x - t)), into out[a] (3,)."""
-    b = np.zeros(8)
+def _warped(x0, x1, x2, dqs, idx, count, w, signs, inverse, out, a, b):
+    """The blend (into b (8,)) of the slots' dual quaternions with weights w applied to the
+    point, or its inverse (R^T (x - t)), into out[a] (3,)."""
+    b[:] = 0.0
     for s in range(count):
         node = idx[s]
         if node == NO_NODE or w[s] == 0.0:
@@ -84,7 +85,7 @@ def _warped(x0, x1, x2, dqs, idx, count, w, signs, inverse, out, a):
 
 
 @numba.njit(cache=True, inline="always")
-def _jacobian(x, nodes, dqs, idx, count, inv, h, inverse, J, w, signs, y):
+def _jacobian(x, nodes, dqs, idx, count, inv, h, inverse, J, w, signs, y, b):
     """J (3, 3) [output, axis]: the central differences with step h of the blend warp (or its
     inverse) at x, the weights following the moved point, the slots' signs fixed at x."""
     _weights(x[0], x[1], x[2], nodes, idx, count, inv, w)
@@ -95,7 +96,7 @@ def _jacobian(x, nodes, dqs, idx, count, inv, h, inverse, J, w, signs, y):
         x1 = x[1] + (sign * h if axis == 1 else 0.0)
         x2 = x[2] + (sign * h if axis == 2 else 0.0)
         _weights(x0, x1, x2, nodes, idx, count, inv, w)
-        _warped(x0, x1, x2, dqs, idx, count, w, signs, inverse, y, a)
+        _warped(x0, x1, x2, dqs, idx, count, w, signs, inverse, y, a, b)
     for i in range(3):
         for axis in range(3):
             J[i, axis] = (y[axis, i] - y[axis + 3, i]) / (2.0 * h)
@@ -105,20 +106,20 @@ def _jacobian(x, nodes, dqs, idx, count, inv, h, inverse, J, w, signs, y):
 def _extreme_singular_values(J):
     """Smallest and largest singular values of J (3, 3): the closed-form (trigonometric)
     eigenvalues of J^T J."""
-    A = np.empty((3, 3))
-    for i in range(3):
-        for k in range(3):
-            A[i, k] = J[0, i] * J[0, k] + J[1, i] * J[1, k] + J[2, i] * J[2, k]
-    q = (A[0, 0] + A[1, 1] + A[2, 2]) / 3.0
-    off = A[0, 1] ** 2 + A[0, 2] ** 2 + A[1, 2] ** 2
-    dev = (A[0, 0] - q) ** 2 + (A[1, 1] - q) ** 2 + (A[2, 2] - q) ** 2
+    a00 = J[0, 0] * J[0, 0] + J[1, 0] * J[1, 0] + J[2, 0] * J[2, 0]
+    a01 = J[0, 0] * J[0, 1] + J[1, 0] * J[1, 1] + J[2, 0] * J[2, 1]
+    a02 = J[0, 0] * J[0, 2] + J[1, 0] * J[1, 2] + J[2, 0] * J[2, 2]
+    a11 = J[0, 1] * J[0, 1] + J[1, 1] * J[1, 1] + J[2, 1] * J[2, 1]
+    a12 = J[0, 1] * J[0, 2] + J[1, 1] * J[1, 2] + J[2, 1] * J[2, 2]
+    a22 = J[0, 2] * J[0, 2] + J[1, 2] * J[1, 2] + J[2, 2] * J[2, 2]
+    q = (a00 + a11 + a22) / 3.0
+    off = a01 ** 2 + a02 ** 2 + a12 ** 2
+    dev = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2
     p = np.sqrt((dev + 2.0 * off) / 6.0)
     scale = p if p > 0 else 1.0
-    for i in range(3):
-        A[i, i] -= q
-    b00, b01, b02 = A[0, 0] / scale, A[0, 1] / scale, A[0, 2] / scale
-    b10, b11, b12 = A[1, 0] / scale, A[1, 1] / scale, A[1, 2] / scale
-    b20, b21, b22 = A[2, 0] / scale, A[2, 1] / scale, A[2, 2] / scale
+    b00, b01, b02 = (a00 - q) / scale, a01 / scale, a02 / scale
+    b10, b11, b12 = b01, (a11 - q) / scale, a12 / scale
+    b20, b21, b22 = b02, b12, (a22 - q) / scale
     det = b00 * (b11 * b22 - b12 * b21) - b01 * (b10 * b22 - b12 * b20) + b02 * (b10 * b21 - b11 * b20)
     r = min(max(0.5 * det, -1.0), 1.0)
     phi = np.arccos(r) / 3.0
@@ -127,18 +128,19 @@ def _extreme_singular_values(J):
     return np.sqrt(max(smallest, 0.0)), np.sqrt(max(largest, 0.0))
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def strains(x, idx, live_nodes, x_ref, ref_idx, nodes, dqs, sigma, h, live_side, ref_side):
     """appending._strains_reference per candidate: live_side[i] the largest singular value of
     the inverse warp's Jacobian at x[i] over its live nodes idx[i] (NO_NODE: an empty slot),
     ref_side[i] 1 / the smallest of the forward warp's at x_ref[i] over its reference nodes
-    ref_idx[i]. Each candidate is its own: the split over threads changes no bit."""
+    ref_idx[i]. On one thread: on two a room's candidates took 2.5 instead of 4 ms, but the
+    kernel 11 s to compile instead of 4.5 (once, into numba's cache)."""
     inv = 1.0 / (2.0 * sigma * sigma)
-    for i in numba.prange(len(x)):
-        k = max(idx.shape[1], ref_idx.shape[1])
-        w, signs, y, J = np.empty(k), np.empty(k), np.empty((6, 3)), np.empty((3, 3))
-        _jacobian(x[i], live_nodes, dqs, idx[i], idx.shape[1], inv, h, True, J, w, signs, y)
+    k = max(idx.shape[1], ref_idx.shape[1])
+    w, signs, y, J, b = np.empty(k), np.empty(k), np.empty((6, 3)), np.empty((3, 3)), np.empty(8)
+    for i in range(len(x)):
+        _jacobian(x[i], live_nodes, dqs, idx[i], idx.shape[1], inv, h, True, J, w, signs, y, b)
         live_side[i] = _extreme_singular_values(J)[1]
-        _jacobian(x_ref[i], nodes, dqs, ref_idx[i], ref_idx.shape[1], inv, h, False, J, w, signs, y)
+        _jacobian(x_ref[i], nodes, dqs, ref_idx[i], ref_idx.shape[1], inv, h, False, J, w, signs, y, b)
         smallest = _extreme_singular_values(J)[0]
         ref_side[i] = 1.0 / smallest if smallest > 0 else np.inf

@@ -13,7 +13,7 @@ from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import invert, se3_exp
 from surfelwarp.preprocess import preprocess
 
-from conftest import numba_threads, shared_data
+from conftest import shared_data
 
 SIGMA = WarpFieldParams().sigma
 EPS = AppendParams().intrinsic_epsilon
@@ -216,7 +216,7 @@ def test_compiled_strains_match_the_numpy_reference(scene):
     """The compiled strains (appending_kernels.py) are the numpy reference's to rounding, on a
     smooth warp, the same turned by ~180 degrees (neighbouring nodes' quaternions antipodal:
     the blend's sign fix), two sheets brought into contact, and a field with fewer nodes than
-    skinning slots (empty slots); and the same bits on one thread and on two."""
+    skinning slots (empty slots)."""
     if scene in ("smooth", "half turn"):
         field = smooth_motion(WarpField.from_points(wavy_sheet()), 2.0)
         if scene == "half turn":
@@ -240,15 +240,11 @@ def test_compiled_strains_match_the_numpy_reference(scene):
     idx, d2 = _live_neighbours(live, field, 4)
     params = AppendParams()
     expect = _strains_reference(live, knn, w, idx, d2, field, params)
-    with numba_threads(1):
-        one = _strains(live, knn, w, idx, d2, field, params)
-    with numba_threads(2):
-        two = _strains(live, knn, w, idx, d2, field, params)
+    one = _strains(live, knn, w, idx, d2, field, params)
     err = [np.abs(one[i] - expect[i]).max() / np.abs(expect[i]).max() for i in range(2)]
     print(f"{scene}: {len(live)} candidates, {field.num_nodes} nodes, relative error live side {err[0]:.1e}, "
           f"reference side {err[1]:.1e}; strains up to {one[0].max():.3f} / {one[1].max():.3f}")
     assert err[0] < 1e-9 and err[1] < 1e-9
-    assert all(np.array_equal(one[i], two[i]) for i in range(2))
     if scene != "three nodes":
         assert max(one[0].max(), one[1].max()) > 1 + EPS       # the scene has compressive candidates
 
