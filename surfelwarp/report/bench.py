@@ -168,6 +168,25 @@ def run_open3d(spec: CompareSpec, voxel_m: float = OPEN3D_VOXEL_M) -> Open3DResu
     return Open3DResult(1000 * float(np.median(later)), len(seconds), voxel_m)
 
 
+def _try_open3d(spec: CompareSpec) -> Open3DResult | ImportError:
+    try:
+        return run_open3d(spec)
+    except ImportError as exc:
+        return exc
+
+
+def open3d_line(o3: list, surfelwarp_ms: float) -> str:
+    """The report's line on Open3D's runs before and after SurfelWarp's (or the ImportError)."""
+    if isinstance(o3[0], ImportError):
+        return (f"Open3D is not available ({o3[0]}): `pip install 'surfelwarp[bench]'` installs open3d-cpu, "
+                "which also needs the system's libusb-1.0-0.")
+    before, after = o3
+    mean = 0.5 * (before.median_frame_ms + after.median_frame_ms)
+    return (f"Open3D (CPU, depth only, {1000 * before.voxel_m:.1f} mm voxels): {before.median_frame_ms:.0f} ms per "
+            f"frame before SurfelWarp's run and {after.median_frame_ms:.0f} ms after ({before.frames} frames each); "
+            f"SurfelWarp {surfelwarp_ms:.0f} ms, **{surfelwarp_ms / mean:.1f}x Open3D's time** (their mean).")
+
+
 def bench(spec: CompareSpec, compare_with: str | None = None, open3d: bool = False, colour_cost: bool = False) -> str:
     """Run and report (markdown). The runs go to spec.out, or a temporary folder if it is None;
     with colour_cost and colour features matched, SurfelWarp once more with the feature term
@@ -178,8 +197,14 @@ def bench(spec: CompareSpec, compare_with: str | None = None, open3d: bool = Fal
         out = Path(spec.out) if spec.out is not None else Path(tmp)
         run_spec = CompareSpec(**{**spec.__dict__, "out": out})
         open_input(run_spec)                      # bad input fails here, before any run
+        # Open3D right before and after SurfelWarp's run (ABA), the ratio to their mean: this
+        # machine's speed drifts over minutes (7-Scenes, one run after the other: Open3D 195,
+        # 206, 225, 253 ms a frame, SurfelWarp within 4 %).
+        o3 = [_try_open3d(run_spec)] if open3d else []
         for name in names:
             run_in_child(name, run_spec)
+            if name == "surfelwarp" and o3 and not isinstance(o3[0], ImportError):
+                o3.append(run_open3d(run_spec))
         metrics = {name: load_metrics(out / name) for name in names}
         colour = colour_line(metrics["surfelwarp"])
         if colour_cost and colour:
@@ -202,15 +227,6 @@ def bench(spec: CompareSpec, compare_with: str | None = None, open3d: bool = Fal
     if compare_with:
         lines += speed_lines(metrics)
     if open3d:
-        lines += ["## Open3D dense SLAM", ""]
-        try:
-            o3 = run_open3d(run_spec)
-        except ImportError as exc:
-            lines += [f"Open3D is not available ({exc}): `pip install 'surfelwarp[bench]'` installs open3d-cpu, "
-                      "which also needs the system's libusb-1.0-0.", ""]
-        else:
-            sw = speed({"surfelwarp": metrics["surfelwarp"]})["surfelwarp"]["total"]
-            lines += [f"Open3D (CPU, depth only, {1000 * o3.voxel_m:.1f} mm voxels): {o3.median_frame_ms:.0f} ms "
-                      f"per frame over {o3.frames} frames; SurfelWarp {sw:.0f} ms, "
-                      f"**{sw / o3.median_frame_ms:.1f}x Open3D's time**.", ""]
+        sw = speed({"surfelwarp": metrics["surfelwarp"]})["surfelwarp"]["total"]
+        lines += ["## Open3D dense SLAM", "", open3d_line(o3, sw), ""]
     return "\n".join(lines)

@@ -7,7 +7,7 @@ import sys
 import pytest
 
 from surfelwarp.data_tools import synth
-from surfelwarp.report.bench import colour_cost_line, colour_line, memory_line, stage_table
+from surfelwarp.report.bench import Open3DResult, colour_cost_line, colour_line, memory_line, open3d_line, stage_table
 
 
 def fake_run(surfels, seconds_per_100k):
@@ -82,6 +82,14 @@ def test_colour_cost_line_gives_all_colour_adds_against_the_run_without():
     line = colour_cost_line(run(0.1, 0.65), run(0.0, 0.6))
     assert "**17.6 % of a frame** (within the 20 % target)" in line
     assert colour_cost_line(run(0.0, 0.6), run(0.0, 0.6)).endswith("(within the 20 % target).")
+
+
+def test_open3d_line_takes_the_ratio_to_the_runs_before_and_after():
+    line = open3d_line([Open3DResult(200.0, 60, 0.0058), Open3DResult(300.0, 60, 0.0058)], 750.0)
+    assert "200 ms per frame before SurfelWarp's run and 300 ms after (60 frames each)" in line
+    assert "SurfelWarp 750 ms, **3.0x Open3D's time** (their mean)" in line and "5.8 mm voxels" in line
+    missing = open3d_line([ImportError("No module named 'open3d'")], 750.0)
+    assert missing.startswith("Open3D is not available (No module named 'open3d')") and "surfelwarp[bench]" in missing
 
 
 @pytest.mark.slow
