@@ -13,7 +13,7 @@ import numpy as np
 NO_NODE = -1
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _weights(x0, x1, x2, nodes, idx, count, inv, w):
     """Normalised Gaussian weights of the point (x0, x1, x2) over its `count` nodes nodes[idx[:count]]
     into w[:count], relative to the nearest so that far points do not underflow."""
@@ -34,7 +34,7 @@ def _weights(x0, x1, x2, nodes, idx, count, inv, w):
         w[s] /= total
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _signs(dqs, idx, count, w, signs):
     """+-1 per slot: each node's dual quaternion flipped into the hemisphere of the heaviest
     slot's (warp_field.blend's antipodal fix)."""
@@ -50,7 +50,7 @@ def _signs(dqs, idx, count, w, signs):
         signs[s] = -1.0 if dot < 0.0 else 1.0
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _warped(x0, x1, x2, dqs, idx, count, w, signs, inverse, out, a, b):
     """The blend (into b (8,)) of the slots' dual quaternions with weights w applied to the
     point, or its inverse (R^T (x - t)), into out[a] (3,)."""
@@ -84,7 +84,7 @@ def _warped(x0, x1, x2, dqs, idx, count, w, signs, inverse, out, a, b):
         out[a, 2] = r20 * x0 + r21 * x1 + r22 * x2 + t2
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _jacobian(x, nodes, dqs, idx, count, inv, h, inverse, J, w, signs, y, b):
     """J (3, 3) [output, axis]: the central differences with step h of the blend warp (or its
     inverse) at x, the weights following the moved point, the slots' signs fixed at x."""
@@ -102,7 +102,7 @@ def _jacobian(x, nodes, dqs, idx, count, inv, h, inverse, J, w, signs, y, b):
             J[i, axis] = (y[axis, i] - y[axis + 3, i]) / (2.0 * h)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _extreme_singular_values(J):
     """Smallest and largest singular values of J (3, 3): the closed-form (trigonometric)
     eigenvalues of J^T J."""
@@ -128,13 +128,14 @@ def _extreme_singular_values(J):
     return np.sqrt(max(smallest, 0.0)), np.sqrt(max(largest, 0.0))
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def strains(x, idx, live_nodes, x_ref, ref_idx, nodes, dqs, sigma, h, live_side, ref_side):
     """appending._strains_reference per candidate: live_side[i] the largest singular value of
     the inverse warp's Jacobian at x[i] over its live nodes idx[i] (NO_NODE: an empty slot),
     ref_side[i] 1 / the smallest of the forward warp's at x_ref[i] over its reference nodes
     ref_idx[i]. On one thread: on two a room's candidates took 2.5 instead of 4 ms, but the
-    kernel 11 s to compile instead of 4.5 (once, into numba's cache)."""
+    kernel 11 s to compile instead of 4.5 (once, into numba's cache). Divisions by zero give
+    inf or nan, as in numpy (a nan strain is not compressive), never an exception."""
     inv = 1.0 / (2.0 * sigma * sigma)
     k = max(idx.shape[1], ref_idx.shape[1])
     w, signs, y, J, b = np.empty(k), np.empty(k), np.empty((6, 3)), np.empty((3, 3)), np.empty(8)

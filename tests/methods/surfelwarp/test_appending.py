@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
 
-from surfelwarp.methods.surfelwarp.appending import (AppendParams, _live_neighbours, _strains, _strains_reference,
-                                                     append_candidates, compressive_mask, inverse_strains, skin_live)
+from surfelwarp.methods.surfelwarp.appending import (AppendParams, _exceeds, _live_neighbours, _strains,
+                                                     _strains_reference, append_candidates, compressive_mask,
+                                                     inverse_strains, skin_live)
+from surfelwarp.methods.surfelwarp.appending_kernels import strains
 from surfelwarp.deform.warp_field import WarpField, WarpFieldParams, inverse_warp, skin, to_local, warp
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import invert, se3_exp
@@ -247,6 +249,15 @@ def test_compiled_strains_match_the_numpy_reference(scene):
     assert err[0] < 1e-9 and err[1] < 1e-9
     if scene != "three nodes":
         assert max(one[0].max(), one[1].max()) > 1 + EPS       # the scene has compressive candidates
+
+
+def test_compiled_strains_of_a_degenerate_blend_are_nan_not_an_exception():
+    """A blend whose rotation part vanishes (zero dual quaternions here) divides by zero: numpy
+    gives nan and inf, and so does the kernel, where numba would raise by default."""
+    x, idx, nodes = np.zeros((1, 3)), np.zeros((1, 4), np.int64), np.zeros((1, 3))
+    live_side, ref_side = np.empty(1), np.empty(1)
+    strains(x, idx, nodes, x, idx, nodes, np.zeros((1, 8)), SIGMA, 0.1 * SIGMA, live_side, ref_side)
+    assert np.isnan(live_side[0]) and not _exceeds(live_side, ref_side, AppendParams())[0]
 
 
 # ---------------------------------------------------------------------------------- Sec. VI-D
