@@ -23,7 +23,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
-from surfelwarp.deform.skinning_kernels import may_change, near_cells, occupancy
+from surfelwarp.deform.skinning_kernels import may_change, near_cells, neighbours_but_self, occupancy
 from surfelwarp.geometry.dq_kernels import blend_apply, dq_from_transforms
 from surfelwarp.geometry.dual_quaternion import dq_blend_indexed, dq_to_transform
 from surfelwarp.geometry.se3 import se3_exp
@@ -177,15 +177,10 @@ def build_graph(nodes: np.ndarray, k: int) -> np.ndarray:
     if m == 0:
         return np.zeros((0, k), np.int32)
     _, idx = KDTree(nodes).query(nodes, k=min(k + 1, m))
-    idx = idx.reshape(m, -1).astype(np.int64)
-    own = np.arange(m)[:, None]
     # Drop the node itself wherever the tree put it (ties may reorder), keep the first k others.
-    others = np.where(idx == own, m, idx)
-    order = np.argsort(others == m, axis=1, kind="stable")
-    others = np.take_along_axis(others, order, axis=1)[:, :k]
-    if others.shape[1] < k:
-        others = np.concatenate([others, np.full((m, k - others.shape[1]), m)], axis=1)
-    return np.where(others == m, own, others).astype(np.int32)
+    out = np.empty((m, k), np.int32)
+    neighbours_but_self(idx.reshape(m, -1).astype(np.int64), k, out)
+    return out
 
 
 def _finish(d2: np.ndarray, idx: np.ndarray, k: int, sigma_m: float) -> tuple[np.ndarray, np.ndarray]:

@@ -73,6 +73,9 @@ def test_graph_holds_the_k_nearest_other_nodes():
     small = build_graph(nodes[:3], 8)
     assert np.array_equal(small[:, 2:], np.repeat(np.arange(3)[:, None], 6, 1))
     assert np.all(small[:, :2] != np.arange(3)[:, None])
+    # Coincident nodes: the tree may list a node after its twin; each keeps the twin, not itself.
+    twins = build_graph(np.repeat(nodes[:20], 2, axis=0), 3)
+    assert np.all(twins != np.arange(40)[:, None]) and np.array_equal(twins[:, 0], np.arange(40) ^ 1)
 
 
 def test_skinning_matches_brute_force():
