@@ -42,6 +42,33 @@ def _rotate(w, x, y, z, c, w2, x2, y2, z2, px, py, pz):
             c * pz + d * z + w2 * (x * py - y * px))
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def rotation_of(b, inverse):
+    """The blend b's (8,) rotation as _rotate's first nine arguments and its translation (R,
+    t of the normalised blend; with inverse the rotation is R^T, the translation still t)."""
+    w, x, y, z, we, xe, ye, ze = b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]
+    inv = 1.0 / (w * w + x * x + y * y + z * z)
+    c = (w * w - x * x - y * y - z * z) * inv
+    w2, x2, y2, z2 = 2.0 * inv * w, 2.0 * inv * x, 2.0 * inv * y, 2.0 * inv * z
+    tx = w2 * xe - we * x2 + (y2 * ze - z2 * ye)
+    ty = w2 * ye - we * y2 + (z2 * xe - x2 * ze)
+    tz = w2 * ze - we * z2 + (x2 * ye - y2 * xe)
+    if inverse:
+        # W^-1 p = R^T (p - t): R^T turns by the conjugate rotation.
+        x, y, z, x2, y2, z2 = -x, -y, -z, -x2, -y2, -z2
+    return (w, x, y, z, c, w2, x2, y2, z2), (tx, ty, tz)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def apply_blend(b, inverse, px, py, pz):
+    """The point moved by the blend b (8,), or by its inverse."""
+    R, (tx, ty, tz) = rotation_of(b, inverse)
+    if inverse:
+        return _rotate(*R, px - tx, py - ty, pz - tz)
+    qx, qy, qz = _rotate(*R, px, py, pz)
+    return qx + tx, qy + ty, qz + tz
+
+
 CHUNK = 4096    # points per parallel task: each task allocates its scratch once
 
 
@@ -62,25 +89,10 @@ def _blend_range(dqs, knn, weights, points, normals, with_normals, blends, signe
         _blend_one(dqs, knn, weights, i, signed, b)
         for j in range(8):
             blends[i, j] = b[j]
-        w, x, y, z, we, xe, ye, ze = b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]
-        inv = 1.0 / (w * w + x * x + y * y + z * z)
-        c = (w * w - x * x - y * y - z * z) * inv
-        w2, x2, y2, z2 = 2.0 * inv * w, 2.0 * inv * x, 2.0 * inv * y, 2.0 * inv * z
-        tx = w2 * xe - we * x2 + (y2 * ze - z2 * ye)
-        ty = w2 * ye - we * y2 + (z2 * xe - x2 * ze)
-        tz = w2 * ze - we * z2 + (x2 * ye - y2 * xe)
-        if inverse:
-            # W^-1 p = R^T (p - t): R^T turns by the conjugate rotation.
-            x, y, z, x2, y2, z2 = -x, -y, -z, -x2, -y2, -z2
-            px, py, pz = _rotate(w, x, y, z, c, w2, x2, y2, z2,
-                                 points[0, i] - tx, points[1, i] - ty, points[2, i] - tz)
-        else:
-            px, py, pz = _rotate(w, x, y, z, c, w2, x2, y2, z2, points[0, i], points[1, i], points[2, i])
-            px, py, pz = px + tx, py + ty, pz + tz
-        live[0, i], live[1, i], live[2, i] = px, py, pz
+        live[0, i], live[1, i], live[2, i] = apply_blend(b, inverse, points[0, i], points[1, i], points[2, i])
         if with_normals:
-            nx, ny, nz = _rotate(w, x, y, z, c, w2, x2, y2, z2, normals[0, i], normals[1, i], normals[2, i])
-            live_n[0, i], live_n[1, i], live_n[2, i] = nx, ny, nz
+            R, _ = rotation_of(b, inverse)
+            live_n[0, i], live_n[1, i], live_n[2, i] = _rotate(*R, normals[0, i], normals[1, i], normals[2, i])
 
 
 def blend_apply(dqs: np.ndarray, knn: np.ndarray, weights: np.ndarray, points: np.ndarray,

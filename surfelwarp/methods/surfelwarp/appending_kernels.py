@@ -10,6 +10,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from surfelwarp.geometry.dq_kernels import apply_blend
+
 NO_NODE = -1
 
 
@@ -53,7 +55,8 @@ def _signs(dqs, idx, count, w, signs):
 @numba.njit(cache=True, inline="always", error_model="numpy")
 def _warped(x0, x1, x2, dqs, idx, count, w, signs, inverse, out, a, b):
     """The blend (into b (8,)) of the slots' dual quaternions with weights w applied to the
-    point, or its inverse (R^T (x - t)), into out[a] (3,)."""
+    point, or its inverse (R^T (x - t)), into out[a] (3,): the warp's own arithmetic
+    (dq_kernels.apply_blend)."""
     b[:] = 0.0
     for s in range(count):
         node = idx[s]
@@ -62,26 +65,7 @@ def _warped(x0, x1, x2, dqs, idx, count, w, signs, inverse, out, a, b):
         ws = w[s] * signs[s]
         for j in range(8):
             b[j] += ws * dqs[node, j]
-    qw, qx, qy, qz = b[0], b[1], b[2], b[3]
-    n2 = qw * qw + qx * qx + qy * qy + qz * qz
-    f = 2.0 / n2
-    r00, r01, r02 = 1 - f * (qy * qy + qz * qz), f * (qx * qy - qw * qz), f * (qx * qz + qw * qy)
-    r10, r11, r12 = f * (qx * qy + qw * qz), 1 - f * (qx * qx + qz * qz), f * (qy * qz - qw * qx)
-    r20, r21, r22 = f * (qx * qz - qw * qy), f * (qy * qz + qw * qx), 1 - f * (qx * qx + qy * qy)
-    # t = 2 q_d conj(q_r) / |q_r|^2 (its vector part)
-    dw, dx, dy, dz = b[4], b[5], b[6], b[7]
-    t0 = (-dw * qx + dx * qw - dy * qz + dz * qy) * f
-    t1 = (-dw * qy + dx * qz + dy * qw - dz * qx) * f
-    t2 = (-dw * qz - dx * qy + dy * qx + dz * qw) * f
-    if inverse:
-        p0, p1, p2 = x0 - t0, x1 - t1, x2 - t2
-        out[a, 0] = r00 * p0 + r10 * p1 + r20 * p2
-        out[a, 1] = r01 * p0 + r11 * p1 + r21 * p2
-        out[a, 2] = r02 * p0 + r12 * p1 + r22 * p2
-    else:
-        out[a, 0] = r00 * x0 + r01 * x1 + r02 * x2 + t0
-        out[a, 1] = r10 * x0 + r11 * x1 + r12 * x2 + t1
-        out[a, 2] = r20 * x0 + r21 * x1 + r22 * x2 + t2
+    out[a, 0], out[a, 1], out[a, 2] = apply_blend(b, inverse, x0, x1, x2)
 
 
 @numba.njit(cache=True, inline="always", error_model="numpy")
