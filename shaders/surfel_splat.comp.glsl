@@ -21,6 +21,7 @@ uniform vec4 u_K;          // fx, fy, cx, cy, OpenCV convention
 uniform ivec2 u_size;      // image width, height
 uniform vec2 u_near_far;   // metres
 uniform float u_max_size;  // largest square side tried, pixels
+uniform float u_max_radius_px;   // a disk's radius is cut to this many pixels at its centre's depth (0: not)
 uniform float u_min_cos;   // smallest |cos| between a pixel ray and a disk normal used in the division
 uniform uint u_count;      // elements
 uniform uint u_first_count;   // elements before this are the first set, the rest fill
@@ -35,6 +36,7 @@ void main() {
     vec3 p = vec3(pos[3u * i], pos[3u * i + 1u], pos[3u * i + 2u]);
     vec3 n_in = vec3(nrm[3u * i], nrm[3u * i + 1u], nrm[3u * i + 2u]);
     float r = radius[i];
+    if (u_max_radius_px > 0.0) r = min(r, u_max_radius_px * p.z / u_K.x);
     float len_n = length(n_in);
     vec3 n = n_in / len_n;
     vec3 ext = r * sqrt(max(vec3(1.0) - n * n, vec3(0.0)));     // the disk's extent along each axis

@@ -42,13 +42,14 @@ def _elements(indices: np.ndarray, n: int) -> np.ndarray:
 def render_solver_maps(positions: np.ndarray, normals: np.ndarray, radii: np.ndarray,
                        intrinsics: Intrinsics, indices: np.ndarray | None = None,
                        near_m: float = NEAR_M, far_m: float = FAR_M,
-                       fill_indices: np.ndarray | None = None) -> SolverMaps:
+                       fill_indices: np.ndarray | None = None, max_radius_px: float = 0.0) -> SolverMaps:
     """Render (N, 3) camera-frame surfels (normals, (N,) radii in metres) as opaque disks.
 
     `indices` selects the surfels drawn (e.g. the stable ones); maps still hold full-array indices.
     `fill_indices` are drawn only on the pixels the first set leaves empty.
     Disks reaching outside (near_m, far_m) in depth are dropped; a disk whose projection is wider
-    than MAX_SIZE_PX is cut to that square about its centre.
+    than MAX_SIZE_PX is cut to that square about its centre. `max_radius_px` > 0 cuts each
+    radius to that many pixels at the disk centre's depth (max_radius_px z / fx).
     """
     positions, normals = camera_points(intrinsics, positions, normals)
     radii = np.asarray(radii, np.float32).reshape(-1)
@@ -65,7 +66,8 @@ def render_solver_maps(positions: np.ndarray, normals: np.ndarray, radii: np.nda
         len(elements) + len(fill), intr.height, intr.width,
         {"positions": positions, "normals": normals, "radii": radii, "elements": np.concatenate([elements, fill])},
         u_K=(intr.fx, intr.fy, intr.cx, intr.cy), u_size=(intr.width, intr.height), u_near_far=(near_m, far_m),
-        u_max_size=MAX_SIZE_PX, u_min_cos=MIN_COS, u_count=len(elements) + len(fill), u_first_count=len(elements))
+        u_max_size=MAX_SIZE_PX, u_max_radius_px=float(max_radius_px), u_min_cos=MIN_COS,
+        u_count=len(elements) + len(fill), u_first_count=len(elements))
     vertex, normal = _gather(index, positions, normals)
     return SolverMaps(index=index, vertex=vertex, normal=normal, intrinsics=intrinsics)
 

@@ -143,6 +143,26 @@ def test_small_disks_match_the_reference():
     assert abs(covered / expected - 1) < 0.002, (covered, expected)
 
 
+def test_disks_cut_to_a_pixel_radius_are_the_reference_of_the_cut_disks():
+    """max_radius_px cuts each disk to that many pixels at its centre's depth: the maps are the
+    reference's for radii min(r, max_radius_px z / fx); disks within it are drawn as they are."""
+    p, n, r = scene()
+    cut = np.minimum(r, 3.0 * p[:, 2] / K.fx).astype(np.float32)
+    assert (cut < r).mean() > 0.7
+    maps = render_solver_maps(p, n, r, K, max_radius_px=3.0)
+    ref, unsure, _ = reference(p, n, cut, K)
+    checked = (ref >= 0) & ~unsure
+    assert checked.sum() > 4000
+    assert (maps.index == ref)[checked].mean() >= 0.99
+    assert (maps.index[(ref == -1) & ~unsure] == -1).all()
+    covered, expected = (maps.index >= 0).sum(), (ref >= 0).sum()
+    assert abs(covered / expected - 1) < 0.005, (covered, expected)
+    assert (maps.index >= 0).sum() < 0.7 * (render_solver_maps(p, n, r, K).index >= 0).sum()
+    small = small_disks(2000, seed=14)
+    assert np.array_equal(render_solver_maps(*small, K, max_radius_px=3.5).index,
+                          render_solver_maps(*small, K).index)
+
+
 def test_equal_depths_go_to_the_lowest_index_whatever_the_order_drawn():
     """Every disk twice, drawn in reverse order (the higher copy first): each pixel goes to the
     lower copy, on every pixel the disk wins. The second pass tries only the pixels a surfel

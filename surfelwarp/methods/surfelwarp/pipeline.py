@@ -100,7 +100,8 @@ class SurfelWarpMethod:
             else:
                 drawn = np.flatnonzero(stable | recent)
         maps = render_solver_maps(*transform_surfels(invert(self.T_camera_to_world), m.live_position, m.live_normal),
-                                  m.radius, self.intrinsics, indices=drawn, fill_indices=fill)
+                                  m.radius, self.intrinsics, indices=drawn, fill_indices=fill,
+                                  max_radius_px=p.solver_splat_max_px)
         seen = np.zeros(len(m), bool)
         seen[maps.index[maps.index >= 0]] = True
         visible = np.flatnonzero(seen)
