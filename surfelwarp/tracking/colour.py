@@ -35,6 +35,15 @@ class KeyframePairs:
     points: np.ndarray          # (n, 3)
 
 
+def common_shift(matches: FeatureMatches, min_px: float, min_matches: int = 8) -> np.ndarray | None:
+    """The matches' median image motion (x, y), if at least min_matches move it farther than
+    min_px (else None)."""
+    if min_px <= 0 or len(matches) < min_matches:
+        return None
+    shift = np.median(matches.current_pixels - matches.previous_pixels, axis=0)
+    return shift if np.hypot(*shift) > min_px else None
+
+
 def keyframe_pairs(keyframe: Keyframe, current: Keypoints, current_vertex: np.ndarray, current_valid: np.ndarray,
                    params: FeatureParams) -> KeyframePairs:
     """The reference features found in the current frame: descriptor matches, refined, lifted
@@ -154,7 +163,8 @@ class ColourMatcher:
                 last_matches = match_frames(last_kp, kp, last.vertex_map, last.valid, obs.vertex_map, obs.valid, T, p)
             found.append(self._on_model(last_matches, model, field, 1.0))
             if p.flow:
-                found.append(self._flow_matches(last, obs, model, field, T, self._prior(T_last, T_predicted)))
+                found.append(self._flow_matches(last, obs, model, field, T, self._prior(T_last, T_predicted),
+                                                common_shift(last_matches, p.flow_shift_px)))
         if not found:
             return None
         return combine(*found)
@@ -190,7 +200,8 @@ class ColourMatcher:
         return AnchoredMatches(solved[keep], kf.points[ia[keep]], q[keep], np.ones(len(keep)))
 
     def _flow_matches(self, last: CameraObservation, obs: CameraObservation, model: ModelView, field: WarpField,
-                      T_last_to_now: np.ndarray, prior: MotionPrior | None = None) -> AnchoredMatches:
+                      T_last_to_now: np.ndarray, prior: MotionPrior | None = None,
+                      shift_px: np.ndarray | None = None) -> AnchoredMatches:
         """Dense flow into `obs` from the model's fused colour drawn at the last pose: the flow
         finds where the model's own texture went, so frame-to-frame errors do not add up as
         they do with flow from the last frame (used where the model has no colour drawn)."""
@@ -209,7 +220,7 @@ class ColourMatcher:
         centres = model.vertex_map[grid[:, 1], grid[:, 0]].astype(np.float64)
         pa = self.intrinsics.project(centres).astype(np.float32)
         depth = where_image(drawn, model.vertex_map[..., 2], surface_depth(last.vertex_map, last.valid))
-        pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa, p, depth, prior)
+        pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa, p, depth, prior, shift_px)
         m = checked_points(pa[inside], pb[inside], centres[inside], np.ones(int(inside.sum()), bool), *current)
         return self._on_model(m, model, field, p.flow_weight)
 

@@ -47,6 +47,8 @@ class FeatureParams:
                                         # if that surfel is this close to the feature's depth point
     flow: bool = True                   # dense optical flow too (from the model's colour, colour.py)
     flow_stride_px: int = 8             # its grid
+    flow_shift_px: float = 8.0          # the last frame's features moving farther than this (median)
+                                        # start the flow's search there (0: never)
     flow_weight: float = 1.0            # a flow pair's weight against a feature's (the shirt pair:
                                         # EPE 38 mm at 0.3, 25 mm at 1)
     refine_radius_px: int = 6           # each pair aligned on a patch of 2r+1 pixels (0: not refined)
@@ -55,7 +57,7 @@ class FeatureParams:
 
     CHOICES = {"detector": DETECTORS}
     ZERO_OK = {"sift_contrast", "motion_floor_m", "rigidity_tolerance", "rigidity_floor_m", "min_agreement",
-               "min_neighbours", "flow_weight", "refine_radius_px"}
+               "min_neighbours", "flow_weight", "refine_radius_px", "flow_shift_px"}
     UNIT = {"ratio", "min_agreement"}
     AT_MOST = {"flow_stride_px": 256, "refine_radius_px": 31}
 
@@ -224,13 +226,14 @@ def grid_pixels(mask: np.ndarray, stride_px: int) -> np.ndarray:
 
 
 def flow_at(previous_color: np.ndarray, current_color: np.ndarray, window: np.ndarray, pixels: np.ndarray,
-            params: FeatureParams, previous_depth: np.ndarray | None = None, prior: MotionPrior | None = None
-            ) -> tuple[np.ndarray, np.ndarray]:
+            params: FeatureParams, previous_depth: np.ndarray | None = None, prior: MotionPrior | None = None,
+            shift_px: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Dense optical flow (OpenCV's DIS) from the previous to the current image, computed on the
     box around `window` and read bilinearly at sub-pixel `pixels` (x, y): (where they go, whether
     they are inside the box). No forward-backward check: on the DeepDeform shirt (20 cm of
     motion) it kept 25 of the 713 good pairs at 8 px; local rigidity (checked_pairs) removes the
-    wrong ones."""
+    wrong ones. `shift_px` (x, y): a motion to start the search from (the features' common
+    motion: `fast`'s ball, 25 px a frame, was found by DIS from zero on some frames only)."""
     rows, cols = bounding_box(np.asarray(window, bool))
     h, w = rows.stop - rows.start, cols.stop - cols.start
     inside = np.zeros(len(pixels), bool)
@@ -238,7 +241,13 @@ def flow_at(previous_color: np.ndarray, current_color: np.ndarray, window: np.nd
         return pixels.copy(), inside
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     previous, current = grey(previous_color), grey(current_color)
-    flow = dis.calc(np.ascontiguousarray(previous[rows, cols]), np.ascontiguousarray(current[rows, cols]), None)
+    # DIS's search starts at zero motion: given a common motion, the current box is moved by it.
+    s = np.zeros(2, int) if shift_px is None else np.rint(shift_px).astype(int)
+    r0, c0 = rows.start + s[1], cols.start + s[0]
+    if not (0 <= r0 <= current.shape[0] - h and 0 <= c0 <= current.shape[1] - w):
+        s, r0, c0 = np.zeros(2, int), rows.start, cols.start
+    flow = dis.calc(np.ascontiguousarray(previous[rows, cols]), np.ascontiguousarray(current[r0:r0 + h, c0:c0 + w]),
+                    None) + s.astype(np.float32)
     local = pixels - np.float32([cols.start, rows.start])
     inside = (local[:, 0] >= 0) & (local[:, 0] <= w - 1) & (local[:, 1] >= 0) & (local[:, 1] <= h - 1)
     maps = np.ascontiguousarray(local.reshape(-1, 1, 2), np.float32)

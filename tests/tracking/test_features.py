@@ -10,8 +10,9 @@ from pykdtree.kdtree import KDTree
 from surfelwarp.config import range_problem
 from surfelwarp.data_tools.texture import albedo
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.tracking.features import (FeatureParams, checked_pairs, detect, flow_pairs, grey, match_frames, refine,
-                                          surface_depth, where_image)
+from surfelwarp.tracking.colour import common_shift
+from surfelwarp.tracking.features import (FeatureMatches, FeatureParams, checked_pairs, detect, flow_at, flow_pairs,
+                                          grey, grid_pixels, match_frames, refine, surface_depth, where_image)
 from surfelwarp.tracking.rigidity import locally_rigid, rigidity_votes
 from surfelwarp.tracking.descriptors import nearest_both_ways
 
@@ -282,3 +283,50 @@ def test_the_flow_is_primed_by_the_cameras_predicted_motion():
     world = T_last @ point
     assert np.allclose(prior.T_previous_to_current @ point, np.linalg.inv(T_last @ step) @ world)
     assert prior.intrinsics == INTR
+
+
+def moving_blob(shift, radius=50, blur=4.0, seed=4):
+    """Two frames of a softly textured disk (a ball's view) on a plain background, the second
+    moved by `shift` (x, y) pixels, and the disk's masks."""
+    rng = np.random.default_rng(seed)
+    rgb = cv2.GaussianBlur(textured_plane()[0], (0, 0), blur)
+    v, u = np.mgrid[0:INTR.height, 0:INTR.width]
+    frames, masks = [], []
+    for offset in (np.zeros(2), np.asarray(shift, np.float64)):
+        mask = (u - 280 - offset[0]) ** 2 + (v - 220 - offset[1]) ** 2 < radius ** 2
+        moved = cv2.warpAffine(rgb, np.float32([[1, 0, offset[0]], [0, 1, offset[1]]]), (INTR.width, INTR.height))
+        image = np.where(mask[..., None], moved, 60) + rng.normal(0.0, 2.0, rgb.shape)
+        frames.append(np.clip(image, 0, 255).astype(np.uint8))
+        masks.append(mask)
+    return frames, masks
+
+
+def test_the_flow_starts_from_a_common_shift():
+    """A 100 px ball moving 40 px a frame: DIS from zero motion finds it for a minority of the
+    grid; started from the features' common motion (2.9 px off here), for all of it."""
+    shift = np.array([40.0, 6.0])
+    (a, b), masks = moving_blob(shift)
+    pa = grid_pixels(masks[0], 8)
+    _, found = flow_at(a, b, masks[0] | masks[1], pa, FeatureParams())
+    assert found.mean() < 0.6
+    pb, found = flow_at(a, b, masks[0] | masks[1], pa, FeatureParams(), shift_px=shift + [2.5, -1.5])
+    error = np.linalg.norm(pb - pa - shift, axis=1)[found]
+    assert found.mean() > 0.95 and np.median(error) < 0.5 and np.mean(error < 1.0) > 0.9, \
+        (found.mean(), np.percentile(error, [50, 90]))
+    # A shift that would take the box out of the image is not used.
+    pb_edge, found_edge = flow_at(a, b, masks[0] | masks[1], pa, FeatureParams(), shift_px=np.array([-400.0, 0.0]))
+    _, found_plain = flow_at(a, b, masks[0] | masks[1], pa, FeatureParams())
+    assert np.array_equal(found_edge, found_plain)
+
+
+def test_common_shift_is_the_median_motion_beyond_a_bound():
+    rng = np.random.default_rng(5)
+    before = rng.uniform(0, 600, (20, 2)).astype(np.float32)
+    motion = np.tile(np.float32([12.0, -5.0]), (20, 1))
+    motion[:6] = rng.uniform(-50, 50, (6, 2))                 # a minority moves otherwise
+    points = np.zeros((20, 3))
+    m = FeatureMatches(before, before + motion, points, points)
+    np.testing.assert_allclose(common_shift(m, 8.0), [12.0, -5.0], atol=1e-5)
+    assert common_shift(m, 14.0) is None                     # |(12, -5)| = 13 px
+    assert common_shift(m, 0.0) is None                      # 0: off
+    assert common_shift(m.select(np.arange(7)), 8.0) is None  # too few to tell
