@@ -60,13 +60,20 @@ def rotation_of(b, inverse):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def apply_blend(b, inverse, px, py, pz):
-    """The point moved by the blend b (8,), or by its inverse."""
-    R, (tx, ty, tz) = rotation_of(b, inverse)
+def _moved(R, t, inverse, px, py, pz):
+    """The point moved by rotation_of's R, t: R p + t, or R^T (p - t) with inverse."""
+    tx, ty, tz = t
     if inverse:
         return _rotate(*R, px - tx, py - ty, pz - tz)
     qx, qy, qz = _rotate(*R, px, py, pz)
     return qx + tx, qy + ty, qz + tz
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def apply_blend(b, inverse, px, py, pz):
+    """The point moved by the blend b (8,), or by its inverse."""
+    R, t = rotation_of(b, inverse)
+    return _moved(R, t, inverse, px, py, pz)
 
 
 CHUNK = 4096    # points per parallel task: each task allocates its scratch once
@@ -89,9 +96,9 @@ def _blend_range(dqs, knn, weights, points, normals, with_normals, blends, signe
         _blend_one(dqs, knn, weights, i, signed, b)
         for j in range(8):
             blends[i, j] = b[j]
-        live[0, i], live[1, i], live[2, i] = apply_blend(b, inverse, points[0, i], points[1, i], points[2, i])
+        R, t = rotation_of(b, inverse)
+        live[0, i], live[1, i], live[2, i] = _moved(R, t, inverse, points[0, i], points[1, i], points[2, i])
         if with_normals:
-            R, _ = rotation_of(b, inverse)
             live_n[0, i], live_n[1, i], live_n[2, i] = _rotate(*R, normals[0, i], normals[1, i], normals[2, i])
 
 

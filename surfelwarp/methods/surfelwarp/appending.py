@@ -224,24 +224,34 @@ def _strains(x: np.ndarray, knn: np.ndarray, weights: np.ndarray, idx: np.ndarra
              field: WarpField, params: "AppendParams") -> tuple[np.ndarray, np.ndarray]:
     """inverse_strains, given the unpruned live neighbours idx / d2 of _live_neighbours, in
     compiled code (appending_kernels.py; _strains_reference is its numpy form)."""
-    n, k = len(x), idx.shape[1]
-    sigma = field.sigma_m
-    h = 0.1 * sigma if params.strain_step_m is None else params.strain_step_m
-    x_ref, _ = inverse_warp(x, None, knn, weights, field)
-    _, ref_idx = KDTree(field.nodes).query(x_ref.astype(np.float32), k=min(k, field.num_nodes))
+    n, h = len(x), _strain_step(field, params)
+    x_ref, ref_idx = _reference_neighbours(x, knn, weights, idx.shape[1], field)
     live_side, ref_side = np.empty(n), np.empty(n)
     strains(np.ascontiguousarray(x, np.float64), np.where(np.isfinite(d2), idx, NO_NODE), field.live_nodes(),
-            np.ascontiguousarray(x_ref, np.float64), ref_idx.reshape(n, -1).astype(np.int64),
-            field.nodes.astype(np.float64), field.dual_quaternions(), float(sigma), float(h), live_side, ref_side)
+            np.ascontiguousarray(x_ref, np.float64), ref_idx, field.nodes.astype(np.float64),
+            field.dual_quaternions(), float(field.sigma_m), float(h), live_side, ref_side)
     return live_side, ref_side
+
+
+def _strain_step(field: WarpField, params: "AppendParams") -> float:
+    """Eq. 7's central-difference step."""
+    return 0.1 * field.sigma_m if params.strain_step_m is None else params.strain_step_m
+
+
+def _reference_neighbours(x: np.ndarray, knn: np.ndarray, weights: np.ndarray, k: int, field: WarpField
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """The candidates' tentative reference positions (inverse warp) and their k nearest
+    reference nodes (N, min(k, nodes)) int64."""
+    x_ref, _ = inverse_warp(x, None, knn, weights, field)
+    j = min(k, field.num_nodes)
+    _, ref_idx = KDTree(field.nodes).query(x_ref.astype(np.float32), k=j)
+    return x_ref, ref_idx.reshape(len(x), j).astype(np.int64)
 
 
 def _strains_reference(x: np.ndarray, knn: np.ndarray, weights: np.ndarray, idx: np.ndarray, d2: np.ndarray,
                        field: WarpField, params: "AppendParams") -> tuple[np.ndarray, np.ndarray]:
     """_strains in numpy: the reference its compiled form is tested on."""
-    n, k = len(x), idx.shape[1]
-    sigma = field.sigma_m
-    h = 0.1 * sigma if params.strain_step_m is None else params.strain_step_m
+    n, sigma, h = len(x), field.sigma_m, _strain_step(field, params)
 
     # Live side: inverse warp x_ref = R^T (x - t) over the unpruned live neighbours.
     w0, _ = _gaussian(d2, sigma)
@@ -250,10 +260,7 @@ def _strains_reference(x: np.ndarray, knn: np.ndarray, weights: np.ndarray, idx:
     J_inv = _central_difference(np.einsum("snji,snj->sni", T[..., :3, :3], xs - T[..., :3, 3]), h)
 
     # Reference side: forward warp R x + t around the tentative reference position.
-    x_ref, _ = inverse_warp(x, None, knn, weights, field)
-    j = min(k, field.num_nodes)
-    _, ref_idx = KDTree(field.nodes).query(x_ref.astype(np.float32), k=j)
-    ref_idx = ref_idx.reshape(n, j).astype(np.int64)
+    x_ref, ref_idx = _reference_neighbours(x, knn, weights, idx.shape[1], field)
     ref_pos = field.nodes.astype(np.float64)[ref_idx]
     w0, _ = _gaussian(_sq_dist(x_ref[:, None, :], ref_pos), sigma)
     xs, T = _perturbed_transforms(x_ref, h, ref_pos, np.ones(ref_idx.shape, bool), sigma,
