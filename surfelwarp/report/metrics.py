@@ -54,9 +54,9 @@ def evaluate_runs(out: Path, seq_dir: Path) -> dict[str, dict] | None:
 INPUT_STAGES = ("read", "preprocess", "ahead")      # what a frame waited for of its read-ahead work
 
 
-# Tracking: the shared rigid ICP, colour correspondences and Gauss-Newton, and each method's
-# model maps and data points.
-TRACKER_STAGES = ("solver_maps", "rigid", "predict", "features", "nonrigid")
+# Tracking: the shared rigid ICP, colour correspondences and Gauss-Newton, the nodes' last
+# motion carried on, and each method's model maps and data points.
+TRACKER_STAGES = ("motion", "solver_maps", "rigid", "predict", "features", "nonrigid")
 # A saved frame's outputs (its live PLY and picture), inside its total but no model update.
 OUTPUT_STAGES = ("write", "render")
 

@@ -1,8 +1,8 @@
-"""The tracker both methods share: colour correspondences (colour.py), rigid ICP (the colour
-pairs moving the pose along what its depth cannot see), then non-rigid Gauss-Newton (with rest
-anchors, anchors.py, unless their weight is 0; started by a solve the colour pairs lead when
-they lie beyond the depth term's reach), then the warp field's common rigid motion moved into
-the camera pose.
+"""The tracker both methods share: each moving node carried on by its last step (prediction.py),
+colour correspondences (colour.py), rigid ICP (the colour pairs moving the pose along what its
+depth cannot see), then non-rigid Gauss-Newton (with rest anchors, anchors.py, unless their
+weight is 0; started by a solve the colour pairs lead when they lie beyond the depth term's
+reach), then the warp field's common rigid motion moved into the camera pose.
 
 Pose conventions: `T_camera_to_world` maps this frame's camera points into the world (the first
 frame's camera); twists are (omega, v), rotation first (geometry/se3.py).
@@ -23,8 +23,10 @@ from surfelwarp.tracking.degeneracy import HeldDirections
 from surfelwarp.tracking.colour import ColourMatcher
 from surfelwarp.tracking.features import AnchoredMatches, FeatureParams, ModelView
 from surfelwarp.tracking.ahead import FoundAhead
+from surfelwarp.tracking.association import DepthTargets
 from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.gauss_newton import NonRigidParams, NonRigidResult, solve_nonrigid
+from surfelwarp.tracking.prediction import NodeMotion, carried_nodes, confirmed
 from surfelwarp.tracking.rigid_icp import PointPairs, RigidParams, RigidResult, rigid_icp
 from surfelwarp.tracking.stillness import point_stillness, rigid_weight, rigid_weight_map, stillness_map
 
@@ -75,9 +77,13 @@ class TrackingParams:
     # solve's start.
     lead_motion_m: float = 0.015
     lead_feature_weight: float = 100.0
+    # Each node the last solve saw move (released, with depth pairs) starts the frame moved on
+    # by this share of its last step (prediction.py: constant velocity, its position only);
+    # 0: every node starts where the last frame left it.
+    predict_node_motion: float = 1.0
 
     CHOICES = {"camera": CAMERAS}
-    ZERO_OK = UNIT = {"released_rigid_weight", "min_still_share"}
+    ZERO_OK = UNIT = {"released_rigid_weight", "min_still_share", "predict_node_motion"}
 
 
 @dataclass(frozen=True)
@@ -162,6 +168,7 @@ class Tracker:
         self._spaces_ahead = FoundAhead()          # FreeSpace by observation, built by `ahead`
         self.colour = ColourMatcher(intrinsics, params.features)
         self._feature_count: int | None = None
+        self.motion = NodeMotion(params.predict_node_motion)   # each node's last step (prediction.py)
 
     def __getstate__(self) -> dict:
         """A checkpoint's copy (io/checkpoint.py) leaves out the free-space caches: half its
@@ -319,6 +326,16 @@ class Tracker:
         # The tree's upper levels only regularise; the warp nodes come first.
         return field.with_transforms(solved.transforms[:field.num_nodes]), result
 
+    def predicted(self, field: WarpField, obs: CameraObservation, model: SurfelSet) -> WarpField:
+        """`field` with each node the last solve saw move carried on by its last step where the
+        model's surfels find the depth of `obs` at least as well from there (prediction.py);
+        call at the start of a frame, before the maps are drawn."""
+        start, p = self.motion.predicted(field), self.params.nonrigid
+        return field if start is field else confirmed(
+            field, start, model.positions, model.normals, model.knn, model.weights,
+            DepthTargets(obs.vertex_map, obs.normal_map, obs.valid, self.intrinsics, self.T_camera_to_world),
+            p.distance_gate_m, p.min_normal_cos)
+
     def _pairs_far(self, field: WarpField, surfels: SurfelSet, matches: AnchoredMatches | None) -> bool:
         """Whether the colour pairs lie, in the median, beyond lead_motion_m of where the field
         and the pose put them."""
@@ -372,4 +389,11 @@ class Tracker:
         if anchors is not None:
             self.anchors = anchors.settle(field, node_depth_m(field, self.T_camera_to_world), p.anchor)
         self._camera_velocity = invert(self._T_previous) @ self.T_camera_to_world
+        information = None if result is None or result.node_information is None else \
+            result.node_information[:field.num_nodes]
+        released = None
+        if p.anchor.weight > 0:
+            released = self.anchors.released if self.anchors is not None and self.anchors.nodes is field.nodes \
+                else np.zeros(field.num_nodes, bool)
+        self.motion.end_frame(field, carried_nodes(information, released))
         return field

@@ -38,6 +38,7 @@ from surfelwarp.render.mesh_maps import render_mesh_maps
 from surfelwarp.render.solver_maps import maps_to_world
 from surfelwarp.timing import StageTimer
 from surfelwarp.tracking.features import ModelView
+from surfelwarp.tracking.prediction import warp_moved
 from surfelwarp.tracking.tracker import SurfelSet, Tracker
 
 
@@ -125,6 +126,14 @@ class DynamicFusionMethod:
             return self.initialise(obs)
         p, timer = self.params, StageTimer()
         mesh = self.mesh
+
+        # Each moving node carried on by its last step (Tracker.predicted): the maps, the colour
+        # features and the solve start from there.
+        model = (mesh.vertices, mesh.normals, mesh.knn, mesh.weights)
+        predicted = self.tracker.predicted(self.field, obs, SurfelSet(*model))
+        warp_moved(self.field, predicted, *model, mesh.live_vertices, mesh.live_normals)
+        self.field = predicted
+        timer.lap("motion")
 
         # Solver maps: the warped canonical mesh at the previous camera pose.
         T_rendered = self.T_camera_to_world.copy()

@@ -34,6 +34,7 @@ from surfelwarp.render.index_map import render_index_map
 from surfelwarp.render.solver_maps import drawn_rows, render_solver_maps
 from surfelwarp.timing import StageTimer
 from surfelwarp.tracking.features import ModelView
+from surfelwarp.tracking.prediction import warp_moved
 from surfelwarp.tracking.tracker import SurfelSet, Tracker
 
 __all__ = ["SurfelWarpMethod", "SurfelWarpParams", "plot_counts"]
@@ -86,6 +87,14 @@ class SurfelWarpMethod:
             return self.initialise(obs)
         p, timer, now = self.params, StageTimer(), obs.time
         m = self.model
+
+        # Each moving node carried on by its last step (Tracker.predicted): the maps, the colour
+        # features and the solve start from there.
+        model = (m.ref_position, m.ref_normal, m.knn, m.weights)
+        predicted = self.tracker.predicted(self.field, obs, SurfelSet(*model))
+        warp_moved(self.field, predicted, *model, m.live_position, m.live_normal)
+        self.field = predicted
+        timer.lap("motion")
 
         # Solver maps: the drawn surfels (all of a template; else stable, and recent ones where
         # no stable surfel is drawn) at the previous pose; the surfels they show are the solve's.

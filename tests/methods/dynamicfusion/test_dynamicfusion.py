@@ -28,7 +28,7 @@ from conftest import write_sequence
 
 # 8 mm voxels (3 voxels of truncation, as the 4 mm default) keep the volumes small for tests.
 FAST = DynamicFusionParams(tsdf=TSDFParams(voxel_size_m=0.008, truncation_m=0.024))
-STAGES = {"solver_maps", "rigid", "predict", "nonrigid", "grow", "warp", "fusion", "marching_cubes", "extend", "warp_mesh"}
+STAGES = {"motion", "solver_maps", "rigid", "predict", "nonrigid", "grow", "warp", "fusion", "marching_cubes", "extend", "warp_mesh"}
 
 
 def run_df(seq_dir, out, params=FAST, frames=None, save_every=4):

@@ -41,7 +41,7 @@ def test_sheet_is_reconstructed_and_tracked(sheet):
     frames = metrics["frames"]
     assert not any(f["reinitialized"] for f in frames)
     assert all(f["fused"] > 0.85 * f["surfels"] for f in frames[1:])   # most surfels see depth each frame
-    assert {"fusion_maps", "fuse", "append", "remove", "inverse_warp", "extend"} <= frames[-1]["seconds"].keys()
+    assert {"motion", "fusion_maps", "fuse", "append", "remove", "inverse_warp", "extend"} <= frames[-1]["seconds"].keys()
 
 
 @pytest.mark.slow

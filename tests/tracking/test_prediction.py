@@ -1,0 +1,171 @@
+"""Constant velocity per node (tracking/prediction.py) and the tracker's use of it: which nodes
+carry their last step on, by how much, and when none do."""
+import numpy as np
+import pytest
+
+from surfelwarp.cli import main
+from surfelwarp.data_tools import evaluate, synth
+from surfelwarp.deform.warp_field import WarpField, extend, skin, warp
+from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.preprocess import preprocess
+from surfelwarp.tracking.anchors import AnchorParams, NodeAnchors
+from surfelwarp.tracking.gauss_newton import NonRigidResult
+from surfelwarp.tracking.prediction import NodeMotion, carried_nodes, warp_moved
+from surfelwarp.tracking.tracker import SurfelSet, Tracker, TrackingParams
+
+INTR = Intrinsics(150.0, 150.0, 80.0, 60.0, 160, 120)
+STEP = np.array([0.02, -0.005, 0.01])
+
+
+def wall_nodes() -> np.ndarray:
+    rng = np.random.default_rng(3)
+    return WarpField.from_points(np.column_stack([rng.uniform(-0.3, 0.3, (2000, 2)), np.ones(2000)])).nodes
+
+
+def stepped(field: WarpField, step: np.ndarray = STEP) -> WarpField:
+    transforms = field.transforms.copy()
+    transforms[:, :3, 3] += step
+    return field.with_transforms(transforms)
+
+
+def end_frame(tracker: Tracker, field: WarpField, information: np.ndarray) -> WarpField:
+    result = NonRigidResult(iterations=1, energy=0.0, reg_energy=0.0, correspondences=1, energies=(),
+                            converged=True, node_information=information)
+    return tracker.factor(field, result)
+
+
+def test_carried_nodes_are_the_measured_released_ones():
+    information = np.tile(np.eye(3), (4, 1, 1))
+    information[1] = 0.0
+    assert carried_nodes(None, None) is None
+    np.testing.assert_array_equal(carried_nodes(information, None), [True, False, True, True])
+    np.testing.assert_array_equal(carried_nodes(information, np.array([True, True, False, True, True])),
+                                  [True, False, False, True])
+
+
+@pytest.mark.parametrize("share", [1.0, 0.5])
+def test_each_seen_node_starts_the_frame_moved_on_by_its_last_step(share):
+    """Known answer: the seen nodes ended two frames 2.3 cm apart; the next frame starts them
+    `share` of that step on, turned as they were. A node out of view (no depth pairs) and one
+    born since start where they are."""
+    tracker = Tracker(INTR, TrackingParams(camera="static", anchor=AnchorParams(weight=0.0),
+                                           predict_node_motion=share))
+    field = WarpField.identity(wall_nodes())
+    m = field.num_nodes
+    information = np.tile(np.eye(3), (m, 1, 1))
+    information[::3] = 0.0
+    end_frame(tracker, field, information)
+    assert tracker.motion.predicted(field) is field               # one frame ended: no step yet
+    moved = end_frame(tracker, stepped(field), information)
+    grown, first_new = extend(moved, np.array([[1.0, 1.0, 1.0]]))
+    assert first_new == m and grown.num_nodes == m + 1
+    start = tracker.motion.predicted(grown)
+    expected = np.where(np.arange(m)[:, None] % 3 == 0, 0.0, share * STEP)
+    np.testing.assert_allclose(start.live_nodes()[:m] - moved.live_nodes(), expected, atol=1e-12)
+    np.testing.assert_array_equal(start.transforms[m:], grown.transforms[m:])
+    np.testing.assert_array_equal(start.transforms[:, :3, :3], grown.transforms[:, :3, :3])
+
+
+def test_the_anchored_nodes_are_not_carried_on():
+    """With rest anchors on, only the released nodes move on: an anchored node that moved (the
+    anchors' common motion, noise) is still by their account."""
+    tracker = Tracker(INTR, TrackingParams(camera="static", predict_node_motion=1.0))
+    field = WarpField.identity(wall_nodes())
+    m = field.num_nodes
+    released = np.arange(m) % 2 == 0
+    tracker.anchors = NodeAnchors.at_rest(field).release(released)
+    information = np.tile(np.eye(3), (m, 1, 1))
+    field = end_frame(tracker, field, information)
+    tracker.anchors = tracker.anchors.release(released)     # as the next solve would release them
+    moved = end_frame(tracker, stepped(field), information)
+    assert tracker.anchors.released[released].all()
+    start = tracker.motion.predicted(moved)
+    np.testing.assert_allclose(start.live_nodes() - moved.live_nodes(), np.where(released[:, None], STEP, 0.0),
+                               atol=1e-12)
+
+
+def test_no_step_is_carried_on_to_a_new_field_or_at_share_zero():
+    motion = NodeMotion(1.0)
+    field = WarpField.identity(wall_nodes())
+    seen = np.ones(field.num_nodes, bool)
+    motion.end_frame(field, seen)
+    motion.end_frame(stepped(field), seen)
+    assert motion.predicted(field) is not field
+    new = WarpField.identity(wall_nodes()[::-1].copy())     # a reinitialisation's nodes
+    assert motion.predicted(new) is new
+    motion.end_frame(new, np.ones(new.num_nodes, bool))      # its first end: nothing to step from
+    assert motion.steps is None and motion.predicted(new) is new
+    off = NodeMotion(0.0, motion.ended, np.ones((new.num_nodes, 3)))
+    assert off.predicted(new) is new
+    still = NodeMotion(1.0)
+    still.end_frame(field, seen)
+    still.end_frame(field, seen)                              # nothing moved
+    assert still.predicted(field) is field
+
+
+def test_a_step_is_kept_where_it_finds_the_depth_and_put_back_where_it_loses_it():
+    """Known answer: a patch at 1 m seen 2 cm farther off. Nodes left of the middle were carried
+    2 cm towards the depth (their surfels pair with it from both places: kept), those right of
+    it 2.5 cm away from it (4.5 cm off, past the 3 cm gate: no pairs, put back); a node not
+    carried stays. One end of the last step into the depth: kept (no pairs either way)."""
+    x, y = np.meshgrid(np.arange(-0.2, 0.2, 0.004), np.arange(-0.15, 0.15, 0.004))
+    points = np.column_stack([x.ravel(), y.ravel(), np.ones(x.size)])
+    normals = np.tile([0.0, 0.0, -1.0], (len(points), 1))
+    field = WarpField.from_points(points)
+    knn, weights = skin(points, field.nodes, field.params.k_skin, field.sigma_m)
+    tracker = Tracker(INTR, TrackingParams(anchor=AnchorParams(weight=0.0)))
+    obs = preprocess(np.full((120, 160), 1.02), INTR, 1, 1)
+    left, right = field.nodes[:, 0] < -0.02, field.nodes[:, 0] > 0.02
+    steps = np.zeros((field.num_nodes, 3))
+    steps[left, 2], steps[right, 2] = 0.02, -0.025
+    tracker.motion = NodeMotion(1.0, (field.nodes, field.live_nodes()), steps)
+    start = tracker.predicted(field, obs, SurfelSet(points, normals, knn, weights))
+    moved = start.live_nodes()[:, 2] - field.live_nodes()[:, 2]
+    np.testing.assert_allclose(moved[left], 0.02, atol=1e-12)
+    assert np.all(moved[~left] == 0.0)
+    assert left.sum() > 10 and right.sum() > 10
+    far = preprocess(np.full((120, 160), 1.2), INTR, 1, 1)      # 20 cm off from either
+    start = tracker.predicted(field, far, SurfelSet(points, normals, knn, weights))
+    np.testing.assert_allclose(start.live_nodes()[right, 2] - 1.0, -0.025, atol=1e-12)
+
+
+def test_only_the_moved_nodes_surfels_are_warped_again():
+    """warp_moved: the rows skinned to a node the prediction moved get the predicted field's
+    warp; the others keep their live values as they were (fused, not the warp's)."""
+    rng = np.random.default_rng(5)
+    points = np.column_stack([rng.uniform(-0.3, 0.3, (500, 2)), np.ones(500)]).astype(np.float32)
+    normals = np.tile(np.float32([0.0, 0.0, -1.0]), (500, 1))
+    field = WarpField.from_points(points)
+    knn, weights = skin(points, field.nodes, field.params.k_skin, field.sigma_m)
+    predicted = stepped(field, 0.0 * STEP)
+    moved = field.nodes[:, 0] > 0.1
+    predicted.transforms[moved, :3, 3] += STEP
+    live, live_n = points + 1.0, normals.copy()             # stand-ins for fused live values
+    warp_moved(field, predicted, points, normals, knn, weights, live, live_n)
+    rows = moved[knn].any(axis=1)
+    assert 0 < rows.sum() < len(rows)
+    expected, expected_n = warp(points, normals, knn, weights, predicted)
+    np.testing.assert_array_equal(live[rows], expected[rows])
+    np.testing.assert_array_equal(live_n[rows], expected_n[rows])
+    np.testing.assert_array_equal(live[~rows], points[~rows] + 1.0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("share", [1.0, 0.0])
+def test_a_fast_ball_before_a_wall_is_followed(tmp_path, share):
+    """End to end: `fast-wall`'s ball moves up to 4.5 cm a frame, past the depth pairs' 3 cm
+    gate, before a wall that holds the pose. Carried on by its last steps it is followed
+    (measured: 2.0 and 2.7 mm on the ball at frames 5 and 10); started where the last frame
+    left it, it falls behind (10.7 and 8.1 mm)."""
+    seq = synth.generate("fast-wall", tmp_path / "seq", frames=11)
+    config = tmp_path / "predict.toml"
+    config.write_text(f"[tracking]\npredict_node_motion = {share}\n")
+    out = tmp_path / "out"
+    assert main(["run", str(seq), "--out", str(out), "--no-progress", "--no-render", "--save-every", "5",
+                 "--config", str(config)]) == 0
+    moving = [f["epe_moving_mean_mm"] for f in evaluate.evaluate(out, seq)["frames"][1:]]
+    print(f"share {share}: the ball's EPE at frames 5, 10: {moving}")
+    if share:
+        assert max(moving) < 3.0
+    else:
+        assert moving[-1] > 5.0
