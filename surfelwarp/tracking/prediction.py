@@ -84,6 +84,8 @@ def warp_moved(field: WarpField, predicted: WarpField, points: np.ndarray, norma
                weights: np.ndarray, live: np.ndarray, live_normals: np.ndarray) -> None:
     """The live points and normals (N, 3, in place) of the rows whose nodes `predicted` moved
     from `field`, warped again from their reference ones; the others keep theirs (fused)."""
+    if predicted is field:
+        return
     rows = moved_rows(field, predicted, knn)
     if len(rows):
         live[rows], live_normals[rows] = warp(points[rows], normals[rows], knn[rows], weights[rows], predicted)
