@@ -50,10 +50,11 @@ class NodeMotion:
         none if the field's first nodes are not those that frame ended with (a new field)."""
         last, self.steps = self.ended, None
         m = 0 if last is None else len(last[0])
+        live = field.live_nodes()
         if carried is not None and last is not None and m <= field.num_nodes \
                 and np.array_equal(field.nodes[:m], last[0]):
-            self.steps = np.where(carried[:m, None], field.live_nodes()[:m] - last[1], 0.0)
-        self.ended = (field.nodes, field.live_nodes())
+            self.steps = np.where(carried[:m, None], live[:m] - last[1], 0.0)
+        self.ended = (field.nodes, live)
 
     def predicted(self, field: WarpField) -> WarpField:
         """`field` with each node moved on by `share` of its last step (the nodes the last frame
@@ -70,10 +71,14 @@ class NodeMotion:
         return field.with_transforms(transforms)
 
 
-def moved_rows(field: WarpField, start: WarpField, knn: np.ndarray) -> np.ndarray:
-    """The rows of the skinning `knn` (N, k) with a node whose transform differs between the
-    two fields: the surfels a prediction moved, to warp again."""
-    moved = np.any(start.transforms != field.transforms, axis=(1, 2))
+def moved_nodes(field: WarpField, start: WarpField) -> np.ndarray:
+    """(M,) bool the nodes whose transform differs between the two fields."""
+    return np.any(start.transforms != field.transforms, axis=(1, 2))
+
+
+def rows_of(moved: np.ndarray, knn: np.ndarray) -> np.ndarray:
+    """The rows of the skinning `knn` (N, k) with a `moved` node: the surfels a prediction
+    moved, to warp again."""
     hit = moved[knn[:, 0]]
     for j in range(1, knn.shape[1]):    # a column at a time: 3x faster than any(axis=1) on a room
         hit |= moved[knn[:, j]]
@@ -86,7 +91,7 @@ def warp_moved(field: WarpField, predicted: WarpField, points: np.ndarray, norma
     from `field`, warped again from their reference ones; the others keep theirs (fused)."""
     if predicted is field:
         return
-    rows = moved_rows(field, predicted, knn)
+    rows = rows_of(moved_nodes(field, predicted), knn)
     if len(rows):
         live[rows], live_normals[rows] = warp(points[rows], normals[rows], knn[rows], weights[rows], predicted)
 
@@ -98,10 +103,10 @@ def confirmed(field: WarpField, start: WarpField, points: np.ndarray, normals: n
     has it unless the surfels it skins (reference points, normals, knn, weights) find, weighed
     by their skinning, at least as many depth pairs (`targets`, the solve's gate) from the
     start as from `field`."""
-    rows = moved_rows(field, start, knn)
+    moved = moved_nodes(field, start)
+    rows = rows_of(moved, knn)
     if len(rows) == 0:
         return start
-    moved = np.any(start.transforms != field.transforms, axis=(1, 2))
     knn, weights = knn[rows], weights[rows]
 
     def support(f: WarpField) -> np.ndarray:
