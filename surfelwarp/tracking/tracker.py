@@ -26,7 +26,7 @@ from surfelwarp.tracking.ahead import FoundAhead
 from surfelwarp.tracking.association import DepthTargets
 from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.gauss_newton import NonRigidParams, NonRigidResult, solve_nonrigid
-from surfelwarp.tracking.prediction import NodeMotion, carried_nodes, confirmed
+from surfelwarp.tracking.prediction import NodeMotion, carried_nodes, carry_on
 from surfelwarp.tracking.rigid_icp import PointPairs, RigidParams, RigidResult, rigid_icp
 from surfelwarp.tracking.stillness import point_stillness, rigid_weight, rigid_weight_map, stillness_map
 
@@ -42,10 +42,9 @@ class TrackingParams:
     camera: str = "moving"
     rigid: RigidParams = field(default_factory=RigidParams)
     nonrigid: NonRigidParams = field(default_factory=NonRigidParams)
-    # Start rigid ICP from a constant-velocity prediction. Off by default: on deforming scenes
-    # the "camera motion" is partly deformation, and extrapolating it pushes the model along
-    # directions depth does not observe (measured on the sheet scene: lost at frame 35 with it,
-    # 1.9 mm mean EPE over 90 frames without).
+    # Start rigid ICP from a constant-velocity prediction. Off: on deforming scenes the "camera
+    # motion" is partly deformation, and extrapolating it pushes the model along directions depth
+    # does not observe (the sheet: lost at frame 35 with it, 1.9 mm mean EPE over 90 without).
     predict_motion: bool = False
     factor_rigid_motion: bool = True   # move the warp field's common rigid motion into the pose
     factor_by_support: bool = True     # that motion fitted to the nodes the depth constrains, each
@@ -78,12 +77,15 @@ class TrackingParams:
     lead_motion_m: float = 0.015
     lead_feature_weight: float = 100.0
     # Each node the last solve saw move (released, with depth pairs) starts the frame moved on
-    # by this share of its last step (prediction.py: constant velocity, its position only);
-    # 0: every node starts where the last frame left it.
+    # by this share of its last step (prediction.py: constant velocity, its position only; 0:
+    # none) if the step is longer than this many sigma of the depth noise at the node (7-Scenes'
+    # still room: ~1000 nodes a frame stepped 1-3 mm, within 2 sigma).
     predict_node_motion: float = 1.0
+    predict_min_step_sigmas: float = 2.0
 
     CHOICES = {"camera": CAMERAS}
-    ZERO_OK = UNIT = {"released_rigid_weight", "min_still_share", "predict_node_motion"}
+    UNIT = {"released_rigid_weight", "min_still_share", "predict_node_motion"}
+    ZERO_OK = UNIT | {"predict_min_step_sigmas"}
 
 
 @dataclass(frozen=True)
@@ -119,11 +121,10 @@ def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None
     transforms. Weighted by information, a node's slide along its surface, which its depth
     does not see (the regulariser's pull, a colour pair's), stays in the field too.
     """
-    source = field.nodes if rest_points is None else rest_points
+    source, fit = field.nodes if rest_points is None else rest_points, fit_rigid
     if node_weights is not None and np.ndim(node_weights) == 3:
-        A = fit_rigid_informed(source, field.live_nodes(), node_weights)
-    else:
-        A = fit_rigid(source, field.live_nodes(), node_weights)
+        fit = fit_rigid_informed
+    A = fit(source, field.live_nodes(), node_weights)
     if held is not None:
         A = held.project(A)
     G = invert(A) @ field.global_transforms()
@@ -168,7 +169,7 @@ class Tracker:
         self._spaces_ahead = FoundAhead()          # FreeSpace by observation, built by `ahead`
         self.colour = ColourMatcher(intrinsics, params.features)
         self._feature_count: int | None = None
-        self.motion = NodeMotion(params.predict_node_motion)   # each node's last step (prediction.py)
+        self.motion = NodeMotion(params.predict_node_motion, min_step_sigmas=params.predict_min_step_sigmas)
 
     def __getstate__(self) -> dict:
         """A checkpoint's copy (io/checkpoint.py) leaves out the free-space caches: half its
@@ -326,13 +327,13 @@ class Tracker:
         # The tree's upper levels only regularise; the warp nodes come first.
         return field.with_transforms(solved.transforms[:field.num_nodes]), result
 
-    def predicted(self, field: WarpField, obs: CameraObservation, model: SurfelSet) -> WarpField:
-        """`field` with each node the last solve saw move carried on by its last step where the
-        model's surfels find the depth of `obs` at least as well from there (prediction.py);
-        call at the start of a frame, before the maps are drawn."""
+    def predicted(self, field: WarpField, obs: CameraObservation, model: SurfelSet, live: np.ndarray,
+                  live_normals: np.ndarray) -> WarpField:
+        """`field` with each node the last solve saw move carried on by its last step where the model
+        finds the depth of `obs` as well from there (prediction.carry_on: live values warped in place)."""
         start, p = self.motion.predicted(field), self.params.nonrigid
-        return field if start is field else confirmed(
-            field, start, model.positions, model.normals, model.knn, model.weights,
+        return field if start is field else carry_on(
+            field, start, model.positions, model.normals, model.knn, model.weights, live, live_normals,
             DepthTargets(obs.vertex_map, obs.normal_map, obs.valid, self.intrinsics, self.T_camera_to_world),
             p.distance_gate_m, p.min_normal_cos)
 
@@ -395,5 +396,5 @@ class Tracker:
         if p.anchor.weight > 0:
             released = self.anchors.released if self.anchors is not None and self.anchors.nodes is field.nodes \
                 else np.zeros(field.num_nodes, bool)
-        self.motion.end_frame(field, carried_nodes(information, released))
+        self.motion.end_frame(field, carried_nodes(information, released), self.T_camera_to_world)
         return field

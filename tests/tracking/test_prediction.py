@@ -6,15 +6,17 @@ import pytest
 from surfelwarp.cli import main
 from surfelwarp.data_tools import evaluate, synth
 from surfelwarp.deform.warp_field import WarpField, extend, skin, warp
-from surfelwarp.geometry.camera import Intrinsics
+from surfelwarp.geometry.camera import Intrinsics, axial_noise_sigma_m
 from surfelwarp.preprocess import preprocess
 from surfelwarp.tracking.anchors import AnchorParams, NodeAnchors
 from surfelwarp.tracking.gauss_newton import NonRigidResult
-from surfelwarp.tracking.prediction import NodeMotion, carried_nodes, warp_moved
+from surfelwarp.tracking.association import DepthTargets
+from surfelwarp.tracking.prediction import NodeMotion, carried_nodes, carry_on
 from surfelwarp.tracking.tracker import SurfelSet, Tracker, TrackingParams
 
 INTR = Intrinsics(150.0, 150.0, 80.0, 60.0, 160, 120)
 STEP = np.array([0.02, -0.005, 0.01])
+I4 = np.eye(4)
 
 
 def wall_nodes() -> np.ndarray:
@@ -88,19 +90,42 @@ def test_no_step_is_carried_on_to_a_new_field_or_at_share_zero():
     motion = NodeMotion(1.0)
     field = WarpField.identity(wall_nodes())
     seen = np.ones(field.num_nodes, bool)
-    motion.end_frame(field, seen)
-    motion.end_frame(stepped(field), seen)
+    motion.end_frame(field, seen, I4)
+    motion.end_frame(stepped(field), seen, I4)
     assert motion.predicted(field) is not field
     new = WarpField.identity(wall_nodes()[::-1].copy())     # a reinitialisation's nodes
     assert motion.predicted(new) is new
-    motion.end_frame(new, np.ones(new.num_nodes, bool))      # its first end: nothing to step from
+    motion.end_frame(new, np.ones(new.num_nodes, bool), I4)      # its first end: nothing to step from
     assert motion.steps is None and motion.predicted(new) is new
     off = NodeMotion(0.0, motion.ended, np.ones((new.num_nodes, 3)))
     assert off.predicted(new) is new
     still = NodeMotion(1.0)
-    still.end_frame(field, seen)
-    still.end_frame(field, seen)                              # nothing moved
+    still.end_frame(field, seen, I4)
+    still.end_frame(field, seen, I4)                              # nothing moved
     assert still.predicted(field) is field
+
+
+@pytest.mark.parametrize("sigmas", [2.0, 0.0])
+def test_a_step_within_the_depth_noise_is_not_carried_on(sigmas):
+    """Known answer: the wall's nodes at 1 m (Kinect's axial noise there 1.88 mm, 2 sigma 3.77
+    mm) stepped 3, 3.7, 3.85 and 6 mm along x, a quarter each: at 2 sigma (the default) only
+    the steps beyond 3.77 mm are carried on; at 0 every step is. The noise is that at the
+    node's depth in the camera: seen from 1 m farther back (2 sigma 12.1 mm), none is."""
+    field = WarpField.identity(wall_nodes())
+    m = field.num_nodes
+    lengths = np.array([0.003, 0.0037, 0.00385, 0.006])[np.arange(m) % 4]
+    step = np.zeros((m, 3))
+    step[:, 0] = lengths
+    moved = field.with_transforms(field.transforms.copy())
+    moved.transforms[:, :3, 3] += step
+    expected = lengths > 2 * axial_noise_sigma_m(1.0) if sigmas else np.ones(m, bool)
+    assert 0.0037 < 2 * axial_noise_sigma_m(1.0) < 0.00385
+    for T, carried in ((I4, expected), (np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -1.0], [0, 0, 0, 1]]),
+                                        expected & (sigmas == 0))):
+        motion = NodeMotion(1.0, min_step_sigmas=sigmas)
+        motion.end_frame(field, np.ones(m, bool), T)
+        motion.end_frame(moved, np.ones(m, bool), T)
+        np.testing.assert_array_equal(np.any(motion.steps != 0, axis=1), carried)
 
 
 def test_a_step_is_kept_where_it_finds_the_depth_and_put_back_where_it_loses_it():
@@ -119,35 +144,62 @@ def test_a_step_is_kept_where_it_finds_the_depth_and_put_back_where_it_loses_it(
     steps = np.zeros((field.num_nodes, 3))
     steps[left, 2], steps[right, 2] = 0.02, -0.025
     tracker.motion = NodeMotion(1.0, (field.nodes, field.live_nodes()), steps)
-    start = tracker.predicted(field, obs, SurfelSet(points, normals, knn, weights))
+    model = SurfelSet(points, normals, knn, weights)
+    start = tracker.predicted(field, obs, model, points.copy(), normals.copy())
     moved = start.live_nodes()[:, 2] - field.live_nodes()[:, 2]
     np.testing.assert_allclose(moved[left], 0.02, atol=1e-12)
     assert np.all(moved[~left] == 0.0)
     assert left.sum() > 10 and right.sum() > 10
     far = preprocess(np.full((120, 160), 1.2), INTR, 1, 1)      # 20 cm off from either
-    start = tracker.predicted(field, far, SurfelSet(points, normals, knn, weights))
+    start = tracker.predicted(field, far, model, points.copy(), normals.copy())
     np.testing.assert_allclose(start.live_nodes()[right, 2] - 1.0, -0.025, atol=1e-12)
 
 
-def test_only_the_moved_nodes_surfels_are_warped_again():
-    """warp_moved: the rows skinned to a node the prediction moved get the predicted field's
-    warp; the others keep their live values as they were (fused, not the warp's)."""
-    rng = np.random.default_rng(5)
-    points = np.column_stack([rng.uniform(-0.3, 0.3, (500, 2)), np.ones(500)]).astype(np.float32)
-    normals = np.tile(np.float32([0.0, 0.0, -1.0]), (500, 1))
+def sheet_at(z: float, step: float = 0.004):
+    """A patch of surfels facing the camera at depth z, its field, skinning and the depth of a
+    wall at 1.02 m (its targets)."""
+    x, y = np.meshgrid(np.arange(-0.2, 0.2, step), np.arange(-0.15, 0.15, step))
+    points = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, z)])
+    normals = np.tile([0.0, 0.0, -1.0], (len(points), 1))
     field = WarpField.from_points(points)
     knn, weights = skin(points, field.nodes, field.params.k_skin, field.sigma_m)
-    predicted = stepped(field, 0.0 * STEP)
-    moved = field.nodes[:, 0] > 0.1
-    predicted.transforms[moved, :3, 3] += STEP
-    live, live_n = points + 1.0, normals.copy()             # stand-ins for fused live values
-    warp_moved(field, predicted, points, normals, knn, weights, live, live_n)
-    rows = moved[knn].any(axis=1)
-    assert 0 < rows.sum() < len(rows)
-    expected, expected_n = warp(points, normals, knn, weights, predicted)
-    np.testing.assert_array_equal(live[rows], expected[rows])
-    np.testing.assert_array_equal(live_n[rows], expected_n[rows])
-    np.testing.assert_array_equal(live[~rows], points[~rows] + 1.0)
+    obs = preprocess(np.full((120, 160), 1.02), INTR, 1, 1)
+    targets = DepthTargets(obs.vertex_map, obs.normal_map, obs.valid, INTR, np.eye(4))
+    return points, normals, field, knn, weights, targets
+
+
+@pytest.mark.parametrize("case", ["quarter", "all", "put_back"])
+def test_only_the_surfels_of_the_nodes_carried_on_are_warped_again(case):
+    """carry_on writes the live values of the rows skinned to a node the returned field moved
+    (the returned field's warp, also where a row has a node put back beside one kept); the
+    others keep their live values as they were (fused, not the warp's). The nodes of the left
+    quarter (a fewer half of the surfels: those gathered; `all`: every node; `put_back`: the
+    left half) step 1 cm towards the depth; with `put_back` those right of the middle step
+    2.5 cm away from it (past the gate: put back; most surfels moved: all are warped)."""
+    points, normals, field, knn, weights, targets = sheet_at(1.0)
+    left = field.nodes[:, 0] < {"quarter": -0.1, "all": 1.0, "put_back": 0.0}[case]
+    right = field.nodes[:, 0] > 0.05
+    transforms = field.transforms.copy()
+    transforms[left, 2, 3] += 0.01
+    if case == "put_back":
+        transforms[right, 2, 3] -= 0.025
+    start = field.with_transforms(transforms)
+    live, live_n = warp(points, normals, knn, weights, field)
+    fused = live + 1e-4                                               # stand-ins for fused values
+    out, out_n = fused.copy(), live_n.copy()
+    result = carry_on(field, start, points, normals, knn, weights, out, out_n, targets, 0.03, 0.7)
+    kept = np.any(result.transforms != field.transforms, axis=(1, 2))
+    np.testing.assert_array_equal(kept, left)                         # right put back, left kept
+    rows = kept[knn].any(axis=1)
+    assert rows.all() if case == "all" else 0 < rows.sum() < len(rows)
+    assert (rows.sum() < len(rows) / 2) == (case == "quarter")
+    if case == "put_back":
+        assert np.any(rows & right[knn].any(axis=1))                  # a row with both kinds
+    expected, expected_n = warp(points, normals, knn, weights, result)
+    np.testing.assert_array_equal(out[rows], expected[rows])
+    np.testing.assert_array_equal(out_n[rows], expected_n[rows])
+    np.testing.assert_array_equal(out[~rows], fused[~rows])
+    assert carry_on(field, field, points, normals, knn, weights, out, out_n, targets, 0.03, 0.7) is field
 
 
 @pytest.mark.slow

@@ -38,7 +38,6 @@ from surfelwarp.render.mesh_maps import render_mesh_maps
 from surfelwarp.render.solver_maps import maps_to_world
 from surfelwarp.timing import StageTimer
 from surfelwarp.tracking.features import ModelView
-from surfelwarp.tracking.prediction import warp_moved
 from surfelwarp.tracking.tracker import SurfelSet, Tracker
 
 
@@ -130,9 +129,7 @@ class DynamicFusionMethod:
         # Each moving node carried on by its last step (Tracker.predicted): the maps, the colour
         # features and the solve start from there.
         model = (mesh.vertices, mesh.normals, mesh.knn, mesh.weights)
-        predicted = self.tracker.predicted(self.field, obs, SurfelSet(*model))
-        warp_moved(self.field, predicted, *model, mesh.live_vertices, mesh.live_normals)
-        self.field = predicted
+        self.field = self.tracker.predicted(self.field, obs, SurfelSet(*model), mesh.live_vertices, mesh.live_normals)
         timer.lap("motion")
 
         # Solver maps: the warped canonical mesh at the previous camera pose.

@@ -34,7 +34,6 @@ from surfelwarp.render.index_map import render_index_map
 from surfelwarp.render.solver_maps import drawn_rows, render_solver_maps
 from surfelwarp.timing import StageTimer
 from surfelwarp.tracking.features import ModelView
-from surfelwarp.tracking.prediction import warp_moved
 from surfelwarp.tracking.tracker import SurfelSet, Tracker
 
 __all__ = ["SurfelWarpMethod", "SurfelWarpParams", "plot_counts"]
@@ -91,9 +90,7 @@ class SurfelWarpMethod:
         # Each moving node carried on by its last step (Tracker.predicted): the maps, the colour
         # features and the solve start from there.
         model = (m.ref_position, m.ref_normal, m.knn, m.weights)
-        predicted = self.tracker.predicted(self.field, obs, SurfelSet(*model))
-        warp_moved(self.field, predicted, *model, m.live_position, m.live_normal)
-        self.field = predicted
+        self.field = self.tracker.predicted(self.field, obs, SurfelSet(*model), m.live_position, m.live_normal)
         timer.lap("motion")
 
         # Solver maps: the drawn surfels (all of a template; else stable, and recent ones where
