@@ -51,20 +51,24 @@ class NodeMotion:
                                                        # (zero: not carried on)
     min_step_sigmas: float = 0.0                       # a step no longer than this many sigma
                                                        # of the depth noise at its node is not
-                                                       # carried on: not told from noise
+                                                       # carried on: not told from noise,
+    reach_m: float = np.inf                            # unless longer than the solve's pairs'
+                                                       # reach, which they cannot bridge (2
+                                                       # sigma passes 3 cm beyond 3.1 m)
 
     def end_frame(self, field: WarpField, carried: np.ndarray | None, T_camera_to_world: np.ndarray) -> None:
         """Record the frame's end: each node's step since the last end where `carried` (M,) and
         the step is longer than min_step_sigmas of the depth noise at the node (seen from
-        T_camera_to_world); none if the field's first nodes are not those that frame ended with
-        (a new field)."""
+        T_camera_to_world) or than reach_m; none if the field's first nodes are not
+        those that frame ended with (a new field)."""
         last, self.steps = self.ended, None
         m = 0 if last is None else len(last[0])
         live = field.live_nodes()
         if carried is not None and last is not None and m <= field.num_nodes \
                 and np.array_equal(field.nodes[:m], last[0]):
             steps = live[:m] - last[1]
-            floor = self.min_step_sigmas * axial_noise_sigma_m(node_depth_m(field, T_camera_to_world)[:m])
+            floor = np.minimum(self.min_step_sigmas * axial_noise_sigma_m(node_depth_m(field, T_camera_to_world)[:m]),
+                               self.reach_m)
             self.steps = np.where((carried[:m] & (np.linalg.norm(steps, axis=1) > floor))[:, None], steps, 0.0)
         self.ended = (field.nodes, live)
 

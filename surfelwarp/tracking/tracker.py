@@ -78,8 +78,7 @@ class TrackingParams:
     lead_feature_weight: float = 100.0
     # Each node the last solve saw move (released, with depth pairs) starts the frame moved on
     # by this share of its last step (prediction.py: constant velocity, its position only; 0:
-    # none) if the step is longer than this many sigma of the depth noise at the node (7-Scenes'
-    # still room: ~1000 nodes a frame stepped 1-3 mm, within 2 sigma).
+    # none) if it is longer than this many sigma of the depth noise there or the pairs' reach.
     predict_node_motion: float = 1.0
     predict_min_step_sigmas: float = 2.0
 
@@ -169,7 +168,8 @@ class Tracker:
         self._spaces_ahead = FoundAhead()          # FreeSpace by observation, built by `ahead`
         self.colour = ColourMatcher(intrinsics, params.features)
         self._feature_count: int | None = None
-        self.motion = NodeMotion(params.predict_node_motion, min_step_sigmas=params.predict_min_step_sigmas)
+        self.motion = NodeMotion(params.predict_node_motion, min_step_sigmas=params.predict_min_step_sigmas,
+                                 reach_m=params.nonrigid.distance_gate_m)
 
     def __getstate__(self) -> dict:
         """A checkpoint's copy (io/checkpoint.py) leaves out the free-space caches: half its
