@@ -93,19 +93,6 @@ def moved_nodes(field: WarpField, start: WarpField) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _rows_hit(moved, knn):
-    """(N,) bool: a node of the row is `moved` (one pass over the skinning: 0.25 ms on 66k rows,
-    numpy a column at a time 0.6)."""
-    hit = np.empty(len(knn), np.bool_)
-    for i in range(len(knn)):
-        h = False
-        for j in range(knn.shape[1]):
-            h |= moved[knn[i, j]]
-        hit[i] = h
-    return hit
-
-
-@numba.njit(cache=True, nogil=True)
 def _skinned_sums(knn, weights, index, num_nodes):
     """(num_nodes,) the skinning weights of the rows `index` summed by node, as np.bincount of
     the raveled rows sums them (the same order: the same bits), without their gathered copies."""
@@ -129,21 +116,23 @@ def carry_on(field: WarpField, start: WarpField, points: np.ndarray, normals: np
     if start is field:
         return field
     moved = moved_nodes(field, start)
-    hit = _rows_hit(moved, knn)
+    kind = np.empty(len(knn), np.int8)
+    _row_kinds(moved, np.zeros_like(moved), knn, kind)     # KEPT: a row with a moved node
+    hit = kind == KEPT
     count = int(hit.sum())
     if count == 0:
         return start
     # Where most surfels moved (an object alone) all are warped and checked, not gathered: a
     # surfel without a moved node adds only to nodes the check does not look at.
     rows = slice(None) if 2 * count > len(knn) else np.flatnonzero(hit)
-    knn, weights = knn[rows], weights[rows]
-    ahead, ahead_n = warp(points[rows], normals[rows], knn, weights, start)
+    points, normals, knn, weights = points[rows], normals[rows], knn[rows], weights[rows]
+    ahead, ahead_n = warp(points, normals, knn, weights, start)
 
     def support(p: np.ndarray, n: np.ndarray) -> np.ndarray:
         pairs = associate_components(_components(p), _components(n), targets, distance_gate_m, min_normal_cos)
         return _skinned_sums(knn, weights, pairs.index, field.num_nodes)
 
-    back = moved & (support(ahead, ahead_n) < support(*warp(points[rows], normals[rows], knn, weights, field)))
+    back = moved & (support(ahead, ahead_n) < support(*warp(points, normals, knn, weights, field)))
     kind = np.empty(len(knn), np.int8)
     _row_kinds(moved & ~back, back, knn, kind)
     if back.any():
@@ -154,8 +143,7 @@ def carry_on(field: WarpField, start: WarpField, points: np.ndarray, normals: np
         # with only nodes put back keeps its live values.
         mixed = np.flatnonzero(kind == MIXED)
         if len(mixed):
-            ahead[mixed], ahead_n[mixed] = warp(points[rows][mixed], normals[rows][mixed], knn[mixed],
-                                                weights[mixed], start)
+            ahead[mixed], ahead_n[mixed] = warp(points[mixed], normals[mixed], knn[mixed], weights[mixed], start)
     index, keep = np.arange(len(live))[rows], np.flatnonzero(kind <= MIXED)
     _put_rows(live, ahead, index, keep)
     _put_rows(live_normals, ahead_n, index, keep)

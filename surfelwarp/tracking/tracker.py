@@ -120,9 +120,8 @@ def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None
     transforms. Weighted by information, a node's slide along its surface, which its depth
     does not see (the regulariser's pull, a colour pair's), stays in the field too.
     """
-    source, fit = field.nodes if rest_points is None else rest_points, fit_rigid
-    if node_weights is not None and np.ndim(node_weights) == 3:
-        fit = fit_rigid_informed
+    source = field.nodes if rest_points is None else rest_points
+    fit = fit_rigid_informed if node_weights is not None and np.ndim(node_weights) == 3 else fit_rigid
     A = fit(source, field.live_nodes(), node_weights)
     if held is not None:
         A = held.project(A)
