@@ -110,11 +110,16 @@ class FreeSpace:
         self._reach = self._reach.reshape(-1)
         self._layers: dict[int, tuple] = {}   # layer -> (r0, r1, c0, c1, its distance transform there)
         # Per pixel the nearest depth within occluder_px, found when a search first needs it
-        # (NaN until then; from the rows' minima where made, _rows_minima); shared with
+        # (NaN until then; from the rows' minima, _rows_minima); shared with
         # moved_to's copies, as it does not depend on the pose.
         self._nearer = np.full((h, w), np.nan, np.float32)
+        # Per pixel the search's last answer and its layer (-1: none yet), likewise shared: a
+        # solve's iterations ask for nearly the same pixels (7-Scenes frames 1-60: 4-7 calls of
+        # ~4k points an observation, ~63 ms a frame searching without it).
+        self._found_layer = np.full((h, w), -1, np.int32)
+        self._found = np.zeros((h, w), np.float32)
         self._ball = _ball_widths(params.occluder_px)
-        self._minima, self._slot, self._box = _rows_minima(self.depth, self.empty, self._ball)
+        self._minima, self._slot, self._box = _rows_minima(self.depth, self._ball)
 
     def _pose(self, T_camera_to_world: np.ndarray) -> None:
         T = np.asarray(T_camera_to_world, np.float64)
@@ -181,7 +186,7 @@ class FreeSpace:
         out = np.empty((len(rows), 4), np.float32)
         p = self.params
         search(self.depth, self.empty, self._nearer, self._ball, self._minima, self._slot, self._box, rows, cols,
-               layers, p.layer_m, p.depth_margin_m, p.search_px, out)
+               layers, p.layer_m, p.depth_margin_m, p.search_px, self._found_layer, self._found, out)
         return out
 
     def facing(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -261,35 +266,23 @@ def _components(points: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(points, np.float64).T)
 
 
-# Below this share of empty pixels about the measured ones the rows' minima are not made: the
-# searches' nearest depths are few and cheap there (a room: ~0.1 ms a frame; `twist-limb` and
-# `tube-wall` 5 % empty, a hand, a sheet or a ball on a plain background 35-75 %).
-_MINIMA_EMPTY_SHARE = 0.25
-
-
-def _rows_minima(depth: np.ndarray, empty: np.ndarray, ball: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _rows_minima(depth: np.ndarray, ball: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The observation's nearest depths within the ball, prepared when it is built (on the
     run's read-ahead worker): each row's minima at the ball's half-widths (row_minima) over the
     measured rows and the columns within the ball of them, from which a search's nearest depth
     takes 2 r + 1 reads instead of the ball's ~1.8k (a touch frame's first search 2.2 ms, a
-    sheet's 4.8). (minima, slot of each half-width, box r0, r1, c0, c1); no slots where the box
-    is mostly measured (_MINIMA_EMPTY_SHARE) or nothing is."""
-    none = (np.zeros((0, 1, 1), np.float32), np.zeros(1, np.int64), np.zeros(4, np.int64))
-    rows, cols = bounding_box(depth > 0, 0)
-    if rows.stop == rows.start:
-        return none
+    sheet's 4.8; 7-Scenes frames 1-60 ~14 ms a frame, where the minima take 4.6 ms on the
+    worker). (minima, slot of each half-width, box r0, r1, c0, c1); an empty box if nothing is
+    measured."""
     reach = int(ball.max())
-    h, w = depth.shape
-    r0, r1, c0, c1 = rows.start, rows.stop, max(cols.start - reach, 0), min(cols.stop + reach, w)
-    searched = empty[max(r0 - len(ball) // 2, 0):min(r1 + len(ball) // 2, h), c0:c1]
-    if searched.mean() < _MINIMA_EMPTY_SHARE:
-        return none
     slot = np.full(reach + 1, -1, np.int64)
     widths = np.unique(ball)
     slot[widths] = np.arange(len(widths))
-    box = np.array([r0, r1, c0, c1], np.int64)
-    return row_minima(depth, slot, r0, r1, c0, c1), slot, box
+    rows, cols = bounding_box(depth > 0, 0)
+    if rows.stop == rows.start:
+        return np.zeros((len(widths), 0, 0), np.float32), slot, np.zeros(4, np.int64)
+    r0, r1, c0, c1 = rows.start, rows.stop, max(cols.start - reach, 0), min(cols.stop + reach, depth.shape[1])
+    return row_minima(depth, slot, r0, r1, c0, c1), slot, np.array([r0, r1, c0, c1], np.int64)
 
 
 @functools.lru_cache(maxsize=4)

@@ -1,6 +1,6 @@
 """The free-space term's compiled loops (free_space.py): the projection of the points within
-reach, the search about each point, and the nearest depth within the occluder test's ball,
-from the image or from its rows' minima."""
+reach, the search about each point, and the nearest depth within the occluder test's ball from
+its rows' minima (nearest_depth, from the image, is the reference the tests hold them to)."""
 from __future__ import annotations
 
 import numba
@@ -19,7 +19,8 @@ def chamfer(dy, dx):
 
 @numba.njit(cache=True, nogil=True)
 def nearest_depth(depth, ball, y, x):
-    """The nearest depth measured within the ball about pixel (y, x) (inf if none)."""
+    """The nearest depth measured within the ball about pixel (y, x) (inf if none): the reference
+    for nearest_by_rows."""
     h, w = depth.shape
     r = len(ball) // 2
     m = np.inf
@@ -107,13 +108,15 @@ def within_reach(x, R, t, fx, fy, cx, cy, h, w, reach, margin, sel, uv, q):
 
 
 @numba.njit(cache=True, nogil=True)
-def search(depth, empty, nearer, ball, minima, slot, box, rows, cols, layers, layer_m, margin_m, max_px, out):
+def search(depth, empty, nearer, ball, minima, slot, box, rows, cols, layers, layer_m, margin_m, max_px,
+           found_layer, found, out):
     """out[i, j]: the chamfer distance from pixel j of point i ((rows, cols) + (0, 0), (0, 1),
     (1, 0), (1, 1)) to the nearest pixel consistent with layer layers[i] (FreeSpace._transform),
     found ring by ring; -1 if none is within max_px. A pixel at Chebyshev distance r is at
     chamfer distance r or more, so the search ends at the first ring beyond the best. The
-    nearest depths it needs are memoised in `nearer`, from the rows' `minima` where given (any
-    slots), else from the image."""
+    nearest depths it needs are memoised in `nearer`, from the rows' `minima`; each pixel's last
+    answer in `found`, with its layer in `found_layer` (-1: none yet): a solve asks again for
+    nearly the same pixels and layers."""
     h, w = depth.shape
     for i in range(len(rows)):
         k = layers[i]
@@ -121,6 +124,9 @@ def search(depth, empty, nearer, ball, minima, slot, box, rows, cols, layers, la
         behind = np.float32((k + 1) * layer_m + margin_m)   # farther than this: seen through
         for j in range(4):
             y, x = rows[i] + j // 2, cols[i] + j % 2
+            if found_layer[y, x] == k:
+                out[i, j] = found[y, x]
+                continue
             best = np.inf
             for r in range(max_px + 1):
                 if r > best:
@@ -140,14 +146,11 @@ def search(depth, empty, nearer, ball, minima, slot, box, rows, cols, layers, la
                         if empty[yy, xx]:
                             m = nearer[yy, xx]
                             if np.isnan(m):
-                                if minima.shape[0] > 0:
-                                    m = nearest_by_rows(minima, slot, box, ball, yy, xx)
-                                else:
-                                    m = nearest_depth(depth, ball, yy, xx)
-                                nearer[yy, xx] = m
+                                m = nearer[yy, xx] = nearest_by_rows(minima, slot, box, ball, yy, xx)
                             consistent = m < near
                         else:
                             consistent = not depth[yy, xx] > behind
                         if consistent:
                             best = c
             out[i, j] = best if best <= max_px + 1 else -1.0
+            found_layer[y, x], found[y, x] = k, out[i, j]

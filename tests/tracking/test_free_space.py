@@ -204,7 +204,7 @@ def test_windowed_distance_transforms_equal_the_whole_images():
     assert any(box[:4] != (0, h, 0, w) for box in windowed._layers.values())   # windows were used
 
 
-def test_the_search_about_each_point_equals_the_whole_images_transforms(monkeypatch):
+def test_the_search_about_each_point_equals_the_whole_images_transforms():
     """Distances up to search_px are searched for about each point; the residuals and gradients
     must be the transforms', and farther points must fall back to the transforms."""
     depth, points = steps_scene_and_points()
@@ -220,15 +220,18 @@ def test_the_search_about_each_point_equals_the_whole_images_transforms(monkeypa
     # Every layer searched alone: the nearest-depth memo fills the same whichever layer asked first.
     again = FreeSpace(depth, INTR, np.eye(4))
     np.testing.assert_allclose(again.residuals(points[:, ::-1])[0][::-1], r1, rtol=0, atol=1e-12)
-    # The nearest depths from the rows' minima (this scene is mostly measured: made only when
-    # asked to): the same answers to the bit.
-    from surfelwarp.tracking import free_space
-    assert searched._minima.shape[0] == 0
-    monkeypatch.setattr(free_space, "_MINIMA_EMPTY_SHARE", 0.0)
-    from_minima = FreeSpace(depth, INTR, np.eye(4))
-    assert from_minima._minima.shape[0] > 0
-    r3, g3 = from_minima.residuals(points)
-    assert r3.tobytes() == r1.tobytes() and g3.tobytes() == g1.tobytes()
+    # Each pixel's answer is kept for its layer: asked again, the same bits; the same pixels at
+    # the next layer (2 cm farther) are searched afresh, then the first layer's again.
+    assert searched.residuals(points)[0].tobytes() == r1.tobytes() and (searched._found_layer >= 0).sum() > 1000
+    farther = points * (1 + P.layer_m / points[2])
+    r4, g4 = searched.residuals(farther)
+    r5, g5 = whole_image_transforms(depth).residuals(farther)
+    assert np.abs(r4 - r1).max() > 0.01
+    np.testing.assert_allclose(r4, r5, rtol=0, atol=2e-7)
+    np.testing.assert_allclose(g4, g5, rtol=0, atol=2e-5)
+    assert searched.residuals(points)[0].tobytes() == r1.tobytes()
+    # shared with the same observation at another pose (the answers do not depend on it)
+    assert searched.moved_to(np.eye(4))._found is searched._found
 
 
 def test_the_chamfer_distance_in_closed_form_is_cv2s():
@@ -323,8 +326,8 @@ def test_the_points_within_reach_are_numpys():
 def test_nearest_depths_from_the_rows_minima_are_the_balls():
     """The rows' minima give every pixel's nearest depth within the occluder test's ball as the
     ball itself does: objects on an empty background (the minima made), beside the image's
-    edges and with pixels measured beyond the far clip (inf); and a mostly measured image makes
-    none (the searches read the image)."""
+    edges and with pixels measured beyond the far clip (inf), a mostly measured image, and an
+    image with nothing measured."""
     rng = np.random.default_rng(7)
     depth = np.zeros((INTR.height, INTR.width), np.float32)
     depth[30:90, 0:50] = rng.uniform(0.5, 2.0, (60, 50))           # at the left edge
@@ -350,4 +353,12 @@ def test_nearest_depths_from_the_rows_minima_are_the_balls():
     for y, x in zip(*np.mgrid[95:145, 0:INTR.width].reshape(2, -1)):     # every pixel of its rows
         assert nearest_by_rows(space._minima, space._slot, space._box, ball, y, x) == \
             nearest_depth(space.depth, ball, y, x)
-    assert FreeSpace(np.ones_like(depth), INTR, np.eye(4))._minima.shape[0] == 0
+    # mostly measured (a room) and nothing measured
+    room = np.full_like(depth, 2.0)
+    room[rng.uniform(size=depth.shape) < 0.05] = 0
+    room[60:80, 100:140] = 0
+    for image in (room, np.zeros_like(depth)):
+        space = FreeSpace(image, INTR, np.eye(4))
+        from_rows = [nearest_by_rows(space._minima, space._slot, space._box, ball, y, x) for y, x in pixels]
+        assert from_rows == [nearest_depth(space.depth, ball, y, x) for y, x in pixels]
+    assert np.isinf(from_rows).all()
