@@ -21,7 +21,7 @@ from surfelwarp.tracking.ahead import FoundAhead
 from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
                                           ModelView, checked_pairs, checked_points, combine, detect, flow_at,
                                           flow_pairs, grid_pixels, lift, match_descriptors, match_frames,
-                                          near_prediction, on_model_map, refine, solved_index, surface_depth,
+                                          near_prediction, pixel_values, refine, solved_index, surface_depth,
                                           where_image)
 from surfelwarp.tracking.patch_align import MotionPrior
 from surfelwarp.tracking.rigidity import locally_rigid
@@ -133,13 +133,16 @@ class ColourMatcher:
                                   np.asarray(ids)[j[near]], surface_depth(obs.vertex_map, obs.valid))
 
     def matches(self, obs: CameraObservation, model: ModelView | None, field: WarpField | None,
-                T_last: np.ndarray, T_predicted: np.ndarray | None = None) -> AnchoredMatches | None:
+                T_last: np.ndarray, T_predicted: np.ndarray | None = None,
+                ended: WarpField | None = None) -> AnchoredMatches | None:
         """Colour correspondences of `obs` with the reference frame's and the last frame's, on
-        the surfels the solve uses (`field`: the warp at the last frame; T_last the last frame's
-        camera-to-world pose, the prediction of this one's: the checks allow the camera's motion
-        as they allow the scene's; T_predicted, its pose predicted by the camera's last motion,
-        primes the flow's patch alignment). Remembers obs for the next frame; with no model (the
-        first frame) that is all. None without colour."""
+        the surfels the solve uses (`field`: the warp the frame starts from, as `model` is
+        drawn; `ended`: the one the last frame ended with, if its nodes were carried on since
+        (prediction.py); T_last the last frame's camera-to-world pose, the prediction of this
+        one's: the checks allow the camera's motion as they allow the scene's; T_predicted, its
+        pose predicted by the camera's last motion, primes the flow's patch alignment).
+        Remembers obs for the next frame; with no model (the first frame) that is all. None
+        without colour."""
         if obs.color is None:
             self._previous_features = None
             return None
@@ -161,10 +164,10 @@ class ColourMatcher:
                 last_matches = early.last_matches
             else:
                 last_matches = match_frames(last_kp, kp, last.vertex_map, last.valid, obs.vertex_map, obs.valid, T, p)
-            found.append(self._on_model(last_matches, model, field, 1.0))
+            found.append(self._on_model(last_matches, model, field, 1.0, ended))
             if p.flow:
                 found.append(self._flow_matches(last, obs, model, field, T, self._prior(T_last, T_predicted),
-                                                common_shift(last_matches, p.flow_shift_px)))
+                                                common_shift(last_matches, p.flow_shift_px), ended))
         if not found:
             return None
         return combine(*found)
@@ -201,17 +204,18 @@ class ColourMatcher:
 
     def _flow_matches(self, last: CameraObservation, obs: CameraObservation, model: ModelView, field: WarpField,
                       T_last_to_now: np.ndarray, prior: MotionPrior | None = None,
-                      shift_px: np.ndarray | None = None) -> AnchoredMatches:
+                      shift_px: np.ndarray | None = None, ended: WarpField | None = None) -> AnchoredMatches:
         """Dense flow into `obs` from the model's fused colour drawn at the last pose: the flow
         finds where the model's own texture went, so frame-to-frame errors do not add up as
-        they do with flow from the last frame (used where the model has no colour drawn)."""
+        they do with flow from the last frame (used where the model has no colour drawn; its
+        pairs start where the last frame saw them, `ended`'s surface, _on_model)."""
         p = self.params
         current = (obs.vertex_map, obs.valid, T_last_to_now, p)
         if model.color_map is None or model.vertex_map is None or not model.color_drawn.any():
             pairs = flow_pairs(last.color, obs.color, last.valid, obs.valid, p,
                                surface_depth(last.vertex_map, last.valid), prior)
             return self._on_model(checked_pairs(*pairs, last.vertex_map, last.valid, *current), model, field,
-                                  p.flow_weight)
+                                  p.flow_weight, ended)
         # The model's colour is drawn interpolated about the surfels' centres (render.colour_map),
         # so each grid pixel's pair starts where the centre of the surfel drawn there projects.
         drawn = model.color_drawn
@@ -224,12 +228,31 @@ class ColourMatcher:
         m = checked_points(pa[inside], pb[inside], centres[inside], np.ones(int(inside.sum()), bool), *current)
         return self._on_model(m, model, field, p.flow_weight)
 
-    def _on_model(self, m: FeatureMatches, model: ModelView, field: WarpField, weight: float) -> AnchoredMatches:
-        """Last-frame matches on the surfels the model map showed at them."""
+    def _on_model(self, m: FeatureMatches, model: ModelView, field: WarpField, weight: float,
+                  ended: WarpField | None = None) -> AnchoredMatches:
+        """Last-frame matches on the surfels the model map showed at them, taken back to the
+        reference by `field`, or, where the nodes were carried on since the last frame ended
+        (`ended`, prediction.py), by the field it ended with: the last frame's points lie on
+        the surface as that field put it (by `field`, a point on a node carried 4 cm would be
+        taken back 4 cm short, and its pair would pull the node on by twice its motion)."""
         world = transform_points(self._T_last, m.previous_points)
-        index, keep = on_model_map(m.previous_pixels, world, model, self.params.anchor_distance_m)
+        at = field if ended is None else ended
+        index, keep = on_model_map(m.previous_pixels, world, model, self.params.anchor_distance_m,
+                                   None if at is field else at)
         solved, in_solve = solved_index(index, model.visible)
         keep &= in_solve
         index = index[keep]
-        ref, _ = inverse_warp(world[keep], None, model.knn[index], model.weights[index], field)
+        ref, _ = inverse_warp(world[keep], None, model.knn[index], model.weights[index], at)
         return AnchoredMatches(solved[keep], ref, m.current_points[keep], np.full(len(ref), weight))
+
+
+def on_model_map(pixels: np.ndarray, points_world: np.ndarray, model: ModelView, max_distance_m: float,
+                 field: WarpField | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(model index, keep) of features seen at `pixels` of the last frame: the surfel the model
+    map shows there, kept where it lies within max_distance_m of the feature's depth point (the
+    model and that frame agree), the surfel where `field` puts it if given, else where it is."""
+    index = pixel_values(pixels, model.index_map).astype(np.int64)
+    i = np.maximum(index, 0)
+    live = model.live_position[i] if field is None else \
+        warp(model.ref_position[i], None, model.knn[i], model.weights[i], field)[0]
+    return index, (index >= 0) & (np.linalg.norm(live - points_world, axis=1) < max_distance_m)

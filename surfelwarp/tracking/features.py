@@ -323,9 +323,9 @@ class ModelView:
     """The model as the feature stage reads it: `index_map` (H, W) of the surfels drawn at the
     last pose (-1: none), the solved surfels `visible` (sorted), and every surfel's live
     position (world), unique id (ascending; None: points do not live on), skinning knn and
-    weights; optionally the drawn points (camera frame at the last pose) and the fused colour
+    weights; optionally the drawn points (camera frame at the last pose), the fused colour
     (uint8 RGB) where `color_drawn`, interpolated about the surfels' centres
-    (render.colour_map)."""
+    (render.colour_map), and every surfel's reference position (world)."""
     index_map: np.ndarray
     visible: np.ndarray
     live_position: np.ndarray
@@ -335,6 +335,7 @@ class ModelView:
     vertex_map: np.ndarray | None = None
     color_map: np.ndarray | None = None
     color_drawn: np.ndarray | None = None
+    ref_position: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -385,13 +386,3 @@ def solved_index(index: np.ndarray, visible: np.ndarray) -> tuple[np.ndarray, np
         return np.zeros(len(index), np.int64), np.zeros(len(index), bool)
     pos = np.minimum(np.searchsorted(visible, index), len(visible) - 1)
     return pos, (visible[pos] == index) & (index >= 0)
-
-
-def on_model_map(pixels: np.ndarray, points_world: np.ndarray, model: ModelView, max_distance_m: float
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """(model index, keep) of features seen at `pixels` of the last frame: the surfel the model
-    map shows there, kept where it lies within max_distance_m of the feature's depth point (the
-    model and that frame agree)."""
-    index = pixel_values(pixels, model.index_map).astype(np.int64)
-    near = np.linalg.norm(np.take(model.live_position, np.maximum(index, 0), axis=0) - points_world, axis=1)
-    return index, (index >= 0) & (near < max_distance_m)

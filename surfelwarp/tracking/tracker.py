@@ -264,16 +264,17 @@ class Tracker:
         if self.uses_features:
             self.colour.ahead(obs)
 
-    def features(self, obs: CameraObservation, model: ModelView | None = None,
-                 field: WarpField | None = None) -> AnchoredMatches | None:
-        """Colour correspondences of `obs` on the solved surfels (colour.py), predicted at the
-        last pose; call before `rigid` (which takes them with colour_pairs). With no model (the
-        first frame) it only remembers obs. None without colour or with the feature term off."""
+    def features(self, obs: CameraObservation, model: ModelView | None = None, field: WarpField | None = None,
+                 ended: WarpField | None = None) -> AnchoredMatches | None:
+        """Colour correspondences of `obs` on the solved surfels (colour.py; `ended`: the field
+        before `predicted`), predicted at the last pose; call before `rigid` (which takes them
+        with colour_pairs). With no model (the first frame) it only remembers obs. None without
+        colour or with the feature term off."""
         self._feature_count = None
         if not self.uses_features:
             return None
         matches = self.colour.matches(obs, model, field, self.T_camera_to_world,
-                                      self.T_camera_to_world @ self._camera_velocity)
+                                      self.T_camera_to_world @ self._camera_velocity, ended)
         self._feature_count = None if matches is None else len(matches)
         return matches
 

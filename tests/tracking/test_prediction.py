@@ -205,21 +205,23 @@ def test_only_the_surfels_of_the_nodes_carried_on_are_warped_again(case):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("share", [1.0, 0.0])
-def test_a_fast_ball_before_a_wall_is_followed(tmp_path, share):
+@pytest.mark.parametrize("method, share", [("surfelwarp", 1.0), ("surfelwarp", 0.0), ("dynamicfusion", 1.0)])
+def test_a_fast_ball_before_a_wall_is_followed(tmp_path, method, share):
     """End to end: `fast-wall`'s ball moves up to 4.5 cm a frame, past the depth pairs' 3 cm
     gate, before a wall that holds the pose. Carried on by its last steps it is followed
-    (measured: 2.0 and 2.7 mm on the ball at frames 5 and 10); started where the last frame
-    left it, it falls behind (10.7 and 8.1 mm)."""
+    (measured: 1.1 and 1.4 mm on the ball at frames 5 and 10; DynamicFusion, which shares the
+    tracker, 1.4 and 4.5; 2.0 and 2.7, and 48 and 87, while the last frame's colour pairs went
+    back to the reference by the carried field, colour.py); started where the last frame left
+    it, it falls behind (10.7 and 8.1 mm)."""
     seq = synth.generate("fast-wall", tmp_path / "seq", frames=11)
     config = tmp_path / "predict.toml"
     config.write_text(f"[tracking]\npredict_node_motion = {share}\n")
     out = tmp_path / "out"
     assert main(["run", str(seq), "--out", str(out), "--no-progress", "--no-render", "--save-every", "5",
-                 "--config", str(config)]) == 0
+                 "--config", str(config), "--method", method]) == 0
     moving = [f["epe_moving_mean_mm"] for f in evaluate.evaluate(out, seq)["frames"][1:]]
-    print(f"share {share}: the ball's EPE at frames 5, 10: {moving}")
+    print(f"{method}, share {share}: the ball's EPE at frames 5, 10: {moving}")
     if share:
-        assert max(moving) < 3.0
+        assert max(moving) < (3.0 if method == "surfelwarp" else 6.0)
     else:
         assert moving[-1] > 5.0

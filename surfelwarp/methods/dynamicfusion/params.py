@@ -13,10 +13,9 @@ class DynamicFusionParams:
     tsdf: TSDFParams = field(default_factory=TSDFParams)
     # node_radius_m is DynamicFusion's decimation density epsilon (25 mm, Sec. 4).
     warp_field: WarpFieldParams = field(default_factory=WarpFieldParams)
-    # The same tracker as SurfelWarp, but each frame starts where the last one ended, as in the
-    # paper: carried on by their last steps (predict_node_motion), DynamicFusion's nodes lost
-    # `fast-wall`'s ball (20 frames: 6.6 -> 66.1 mm on it; not yet understood).
-    tracking: TrackingParams = field(default_factory=lambda: TrackingParams(predict_node_motion=0.0))
+    # The same tracker as SurfelWarp, its nodes carried on by their last steps too
+    # (predict_node_motion; the paper starts each frame where the last one ended).
+    tracking: TrackingParams = field(default_factory=TrackingParams)
     min_first_points: int = 500       # the model starts at the first frame with this many valid pixels
     voxel_chunk: int = 1 << 18        # voxels per warp / skinning batch (bounds temporaries)
     # Warp and fuse only blocks of voxels that can be fused this frame (fusible_blocks): the

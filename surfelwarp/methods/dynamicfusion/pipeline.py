@@ -129,7 +129,8 @@ class DynamicFusionMethod:
         # Each moving node carried on by its last step (Tracker.predicted): the maps, the colour
         # features and the solve start from there.
         model = (mesh.vertices, mesh.normals, mesh.knn, mesh.weights)
-        self.field = self.tracker.predicted(self.field, obs, SurfelSet(*model), mesh.live_vertices, mesh.live_normals)
+        ended, self.field = self.field, self.tracker.predicted(self.field, obs, SurfelSet(*model), mesh.live_vertices,
+                                                               mesh.live_normals)
         timer.lap("motion")
 
         # Solver maps: the warped canonical mesh at the previous camera pose.
@@ -142,7 +143,7 @@ class DynamicFusionMethod:
         surfels = self.predicted_points(maps, T_rendered)
         timer.lap("predict")
         # Colour features and flow of the last frame matched into this one, on the points drawn at them.
-        matches = self.tracker.features(obs, self.model_view(maps, world_vertex, surfels), self.field)
+        matches = self.tracker.features(obs, self.model_view(maps, world_vertex, surfels), self.field, ended)
         timer.lap("features")
         rigid = self.tracker.rigid(world_vertex, world_normal, obs,
                                    self.tracker.stillness_map(maps.index, mesh.knn, mesh.weights),
@@ -235,7 +236,8 @@ class DynamicFusionMethod:
         hit = maps.index >= 0
         index_map = np.full(maps.index.shape, -1, np.int64)
         index_map[hit] = np.arange(int(hit.sum()))
-        return ModelView(index_map, index_map[hit], world_vertex[hit], None, points.knn, points.weights)
+        return ModelView(index_map, index_map[hit], world_vertex[hit], None, points.knn, points.weights,
+                         ref_position=points.positions)
 
     def _depth(self, obs: CameraObservation) -> np.ndarray:
         """The depth the tracker used: filtered, only where the observation is valid."""

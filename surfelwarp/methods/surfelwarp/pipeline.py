@@ -90,7 +90,8 @@ class SurfelWarpMethod:
         # Each moving node carried on by its last step (Tracker.predicted): the maps, the colour
         # features and the solve start from there.
         model = (m.ref_position, m.ref_normal, m.knn, m.weights)
-        self.field = self.tracker.predicted(self.field, obs, SurfelSet(*model), m.live_position, m.live_normal)
+        ended, self.field = self.field, self.tracker.predicted(self.field, obs, SurfelSet(*model), m.live_position,
+                                                               m.live_normal)
         timer.lap("motion")
 
         # Solver maps: the drawn surfels (all of a template; else stable, and recent ones where
@@ -116,7 +117,7 @@ class SurfelWarpMethod:
 
         # Colour features of the last frame matched into this one, on the visible surfels drawn
         # at them.
-        matches = self.tracker.features(obs, self._model_view(maps, visible), self.field)
+        matches = self.tracker.features(obs, self._model_view(maps, visible), self.field, ended)
         timer.lap("features")
 
         # Rigid alignment of the observation to the rendered model (and the colour pairs), led
@@ -257,7 +258,8 @@ class SurfelWarpMethod:
         color = drawn = None
         if self.has_color and self.tracker.uses_features:
             color, drawn = colour_map(maps, m.color_weight > 0, m.color)
-        return ModelView(maps.index, visible, m.live_position, m.ids, m.knn, m.weights, maps.vertex, color, drawn)
+        return ModelView(maps.index, visible, m.live_position, m.ids, m.knn, m.weights, maps.vertex, color, drawn,
+                         m.ref_position)
 
     def _new_reference(self, obs: CameraObservation) -> None:
         """Nodes sampled from S_ref with identity transforms, every surfel skinned to them."""
