@@ -5,7 +5,7 @@ The solve's depth pairs reach 3 cm (NonRigidParams.distance_gate_m). Where the c
 follows the scene (an object alone), rigid ICP carries a fast object's motion; before a still
 background, which holds the pose, the object's nodes start each frame where the last one left
 them, and a ball moving 4.5 cm a frame is left behind (`fast-wall`: mean EPE 88 mm on the ball
-over 60 frames without, 1.7-2.2 mm with). Only the nodes' positions are carried on: their turns,
+over 60 frames without, 1.0-3.0 mm with). Only the nodes' positions are carried on: their turns,
 which depth sees poorly on a round object, compounded into a lost ball within a few frames
 when carried on too.
 
