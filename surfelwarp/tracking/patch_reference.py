@@ -47,17 +47,17 @@ def align_reference(previous_grey: np.ndarray, current_grey: np.ndarray, pa: np.
         w = w * ((z > 0) & (np.abs(z - zc) < depth_tol_m))
         if prior is not None:
             shifts = _prior_shifts_reference(prior, X, Y, z, pa, zc, w)
-    Tn, sd = _normalised(_bilinear(previous, X, Y), w)
+    basis = _plane_basis(w, ox, oy)
+    Tn, sd = _normalised(_bilinear(previous, X, Y), w, basis)
     SD = steepest_descent(previous, pa, ox, oy)
     G = np.einsum("ns,nsi,nsj->nij", w, SD[..., [2, 5]], SD[..., [2, 5]])
     textured = np.linalg.eigvalsh(G)[:, 0] > (NOISE_GREY / PLAIN_PX) ** 2
     SD /= sd[..., None]
-    sw = w.sum(1)[:, None, None]
-    SD -= (w[..., None] * SD).sum(1, keepdims=True) / np.maximum(sw, 1e-12)
+    SD = np.stack([_off_plane(SD[..., k], w, basis) for k in range(6)], -1)
     along = (w[..., None] * SD * Tn[..., None]).sum(1) / np.maximum((w * Tn * Tn).sum(1), 1e-12)[:, None]
     SD -= along[:, None, :] * Tn[..., None]
     H = np.einsum("ns,nsi,nsj->nij", w, SD, SD) + 1e-6 * np.eye(6)
-    common = (current, w, Tn, SD, pb, ox, oy, shifts, max_shift_px)
+    common = (current, w, basis, Tn, SD, pb, ox, oy, shifts, max_shift_px)
     shift, shift_step = _iterate_reference(*common, np.linalg.inv(H[:, [2, 5]][:, :, [2, 5]]), False, pb,
                                            TRANSLATION_ITERS)
     warped, warped_step = _iterate_reference(*common, np.linalg.inv(H), True, shift, iters)
@@ -68,10 +68,38 @@ def align_reference(previous_grey: np.ndarray, current_grey: np.ndarray, pa: np.
     return moved, status.astype(np.int8)
 
 
-def _normalised(v: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _plane_basis(w: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
+    """(n, 3, S): 1, x and y over each pair's patch, orthonormal under its weights (Gram-Schmidt,
+    as the kernel)."""
+    E = np.repeat(np.stack(np.broadcast_arrays(np.ones_like(ox), ox, oy))[None], len(w), 0).astype(np.float64)
+    for k in range(3):
+        for j in range(k):
+            E[:, k] -= (w * E[:, k] * E[:, j]).sum(1)[:, None] * E[:, j]
+        norm = np.sqrt((w * E[:, k] ** 2).sum(1))[:, None]
+        E[:, k] = np.where(norm > 1e-9, E[:, k] / np.maximum(norm, 1e-300), 0.0)
+    return E
+
+
+def _off_plane(v: np.ndarray, w: np.ndarray, E: np.ndarray) -> np.ndarray:
+    """(n, S) v less each row's weighted least-squares plane over the patch."""
+    out = np.array(v, np.float64)
+    for k in range(3):
+        out -= (w * out * E[:, k]).sum(1)[:, None] * E[:, k]
+    return out
+
+
+def _normalised(v: np.ndarray, w: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    sw = np.maximum(w.sum(1, keepdims=True), 1e-12)
+    r = _off_plane(v, w, basis)
+    sd = np.maximum(np.sqrt((w * r ** 2).sum(1, keepdims=True) / sw), 1e-6)
+    return r / sd, sd
+
+
+def _centred(v: np.ndarray, w: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(v - mean) / std of v less its plane: the kernel's current patch (its plane moves no step)."""
     sw = np.maximum(w.sum(1, keepdims=True), 1e-12)
     m = (w * v).sum(1, keepdims=True) / sw
-    sd = np.maximum(np.sqrt((w * (v - m) ** 2).sum(1, keepdims=True) / sw), 1e-6)
+    sd = np.maximum(np.sqrt((w * _off_plane(v, w, basis) ** 2).sum(1, keepdims=True) / sw), 1e-6)
     return (v - m) / sd, sd
 
 
@@ -93,7 +121,7 @@ def _prior_shifts_reference(prior: MotionPrior, X, Y, z, pa, zc, w) -> np.ndarra
     return np.where(np.abs(shifts).max(axis=(0, 2))[:, None] < PRIOR_MIN_PX, 0.0, shifts)
 
 
-def _iterate_reference(current, w, Tn, SD, pb, ox, oy, shifts, max_shift_px, Hinv, affine, start, iters):
+def _iterate_reference(current, w, basis, Tn, SD, pb, ox, oy, shifts, max_shift_px, Hinv, affine, start, iters):
     """_iterate for every pair at once: (n, 2) shifts and (n,) last steps."""
     n = len(start)
     A, t = np.repeat(np.eye(2)[None], n, 0), np.array(start, np.float64)
@@ -102,8 +130,8 @@ def _iterate_reference(current, w, Tn, SD, pb, ox, oy, shifts, max_shift_px, Hin
         i = np.flatnonzero(active)
         if len(i) == 0:
             break
-        In, _ = _normalised(_bilinear(current, t[i, :1] + A[i, 0, :1] * ox + A[i, 0, 1:] * oy + shifts[0, i],
-                                      t[i, 1:] + A[i, 1, :1] * ox + A[i, 1, 1:] * oy + shifts[1, i]), w[i])
+        In, _ = _centred(_bilinear(current, t[i, :1] + A[i, 0, :1] * ox + A[i, 0, 1:] * oy + shifts[0, i],
+                                      t[i, 1:] + A[i, 1, :1] * ox + A[i, 1, 1:] * oy + shifts[1, i]), w[i], basis[i])
         r = np.einsum("nsj,ns->nj", SD[i], w[i] * (In - Tn[i]))
         d = np.zeros((len(i), 6))
         if affine:
