@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from surfelwarp.tracking.patch_align import (ACCEPT_PX, ALIGNED, CONVERGED_PX, FAILED, MIN_SURFACE_SHARE, NOISE_GREY,
-                                             PLAIN_PX, PRIOR_MIN_PX, TRANSLATION_ITERS, UNALIGNED, MotionPrior,
+                                             PLAIN_PX, PRIOR_MIN_PX, SLOPE_KEEPS, TRANSLATION_ITERS, UNALIGNED, MotionPrior,
                                              _gradients, _patch)
 
 
@@ -47,16 +47,17 @@ def align_reference(previous_grey: np.ndarray, current_grey: np.ndarray, pa: np.
         w = w * ((z > 0) & (np.abs(z - zc) < depth_tol_m))
         if prior is not None:
             shifts = _prior_shifts_reference(prior, X, Y, z, pa, zc, w)
+    gradients = steepest_descent(previous, pa, ox, oy)
+    G = np.einsum("ns,nsi,nsj->nij", w, gradients[..., [2, 5]], gradients[..., [2, 5]])
+    weakest = np.linalg.eigvalsh(G)[:, 0]
+    textured = weakest > (NOISE_GREY / PLAIN_PX) ** 2
     basis = _plane_basis(w, ox, oy)
-    Tn, sd = _normalised(_bilinear(previous, X, Y), w, basis)
-    SD = steepest_descent(previous, pa, ox, oy)
-    G = np.einsum("ns,nsi,nsj->nij", w, SD[..., [2, 5]], SD[..., [2, 5]])
-    textured = np.linalg.eigvalsh(G)[:, 0] > (NOISE_GREY / PLAIN_PX) ** 2
-    SD /= sd[..., None]
-    SD = np.stack([_off_plane(SD[..., k], w, basis) for k in range(6)], -1)
-    along = (w[..., None] * SD * Tn[..., None]).sum(1) / np.maximum((w * Tn * Tn).sum(1), 1e-12)[:, None]
-    SD -= along[:, None, :] * Tn[..., None]
-    H = np.einsum("ns,nsi,nsj->nij", w, SD, SD) + 1e-6 * np.eye(6)
+    Tn, sd, SD, H = _projected(previous, X, Y, w, basis, gradients)
+    # where the slope leaves less than SLOPE_KEEPS of the weakest direction's texture: gain and
+    # offset alone
+    kept = np.linalg.eigvalsh(H[:, [2, 5]][:, :, [2, 5]] * sd[:, :, None] ** 2)[:, 0] >= SLOPE_KEEPS * weakest
+    basis = np.where(kept[:, None, None], basis, basis * np.array([1.0, 0.0, 0.0])[:, None])
+    Tn, sd, SD, H = _projected(previous, X, Y, w, basis, gradients)
     common = (current, w, basis, Tn, SD, pb, ox, oy, shifts, max_shift_px)
     shift, shift_step = _iterate_reference(*common, np.linalg.inv(H[:, [2, 5]][:, :, [2, 5]]), False, pb,
                                            TRANSLATION_ITERS)
@@ -66,6 +67,17 @@ def align_reference(previous_grey: np.ndarray, current_grey: np.ndarray, pa: np.
     moved = np.where((aligned & (warped_step < ACCEPT_PX))[:, None], warped, np.where(aligned[:, None], shift, pb))
     status = np.where(aligned, ALIGNED, np.where(surface & textured, FAILED, UNALIGNED))
     return moved, status.astype(np.int8)
+
+
+def _projected(previous, X, Y, w, basis, gradients):
+    """The template normalised off the basis, its scale, the steepest descent images projected off
+    the basis and the template, their Gauss-Newton matrix."""
+    Tn, sd = _normalised(_bilinear(previous, X, Y), w, basis)
+    SD = gradients / sd[..., None]
+    SD = np.stack([_off_plane(SD[..., k], w, basis) for k in range(6)], -1)
+    along = (w[..., None] * SD * Tn[..., None]).sum(1) / np.maximum((w * Tn * Tn).sum(1), 1e-12)[:, None]
+    SD -= along[:, None, :] * Tn[..., None]
+    return Tn, sd, SD, np.einsum("ns,nsi,nsj->nij", w, SD, SD) + 1e-6 * np.eye(6)
 
 
 def _plane_basis(w: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
