@@ -155,7 +155,6 @@ def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window,
         for k in range(6):
             for s in range(S):
                 SD[k, s] = raw[k, s] * scale
-        sd = sd / scale
         H = project_out(SD, w, E, Tn)
     primed = S if len(prior) > 0 else 0          # no prior: no per-sample shifts to hold
     dx, dy = np.zeros(primed), np.zeros(primed)

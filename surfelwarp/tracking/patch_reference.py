@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from surfelwarp.tracking.patch_align import (ACCEPT_PX, ALIGNED, CONVERGED_PX, FAILED, MIN_SURFACE_SHARE, NOISE_GREY,
-                                             PLAIN_PX, PRIOR_MIN_PX, SLOPE_KEEPS, TRANSLATION_ITERS, UNALIGNED, MotionPrior,
-                                             _gradients, _patch)
+                                             PLAIN_PX, PRIOR_MIN_PX, SLOPE_KEEPS, TRANSLATION_ITERS, UNALIGNED,
+                                             MotionPrior, _gradients, _patch)
 
 
 def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
