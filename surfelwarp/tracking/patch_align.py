@@ -99,6 +99,13 @@ def _nearest_value(image, x, y):
     return image[int(round(min(max(y, 0.0), image.shape[0] - 1.0))), int(round(min(max(x, 0.0), image.shape[1] - 1.0)))]
 
 
+@numba.njit(cache=True, inline="always")
+def _weakest(xx, xy, yy):
+    """The smaller eigenvalue of the symmetric 2x2 [[xx, xy], [xy, yy]]: a patch's texture in its
+    weakest direction."""
+    return 0.5 * (xx + yy) - np.sqrt(0.25 * (xx - yy) ** 2 + xy * xy)
+
+
 @numba.njit(cache=True, fastmath=SUMS)
 def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window, iters, depth_tol_m, max_shift_px,
                prior, result):
@@ -139,7 +146,7 @@ def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window,
         tx, ty = tx / sd, ty / sd
         SD[0, s], SD[1, s], SD[2, s] = tx * ox[s], tx * oy[s], tx
         SD[3, s], SD[4, s], SD[5, s] = ty * ox[s], ty * oy[s], ty
-    weakest = 0.5 * (gxx + gyy) - np.sqrt(0.25 * (gxx - gyy) ** 2 + gxy * gxy)
+    weakest = _weakest(gxx, gxy, gyy)
     if weakest <= (NOISE_GREY / PLAIN_PX) ** 2:
         result[0], result[1], result[2] = bx, by, UNALIGNED
         return
@@ -148,8 +155,7 @@ def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window,
     # The slope is taken out only where the patch's texture, not its shading, carries the shift:
     # on a soft texture (a ball's) the plane takes most of what resolves it, and gain and offset
     # alone are the better model there.
-    hxx, hxy, hyy = H[2, 2] * sd * sd, H[2, 5] * sd * sd, H[5, 5] * sd * sd
-    if 0.5 * (hxx + hyy) - np.sqrt(0.25 * (hxx - hyy) ** 2 + hxy * hxy) < SLOPE_KEEPS * weakest:
+    if _weakest(H[2, 2] * sd * sd, H[2, 5] * sd * sd, H[5, 5] * sd * sd) < SLOPE_KEEPS * weakest:
         E[1, :], E[2, :] = 0.0, 0.0
         scale = sd / normalise(T, w, E, Tn)
         for k in range(6):
