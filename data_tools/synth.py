@@ -46,7 +46,7 @@ from .meshes import edges, vertex_normals
 from .noise import kinect_noise
 from .render import MeshRenderer, incidence_cosine
 from .scenes import SCENES
-from .texture import shade
+from .texture import LIGHTS, light_direction, shade
 
 DEPTH_SCALE = 1000.0
 NOISE_MODELS = ("kinect", "none")
@@ -130,12 +130,15 @@ def _prepare_out(out: Path) -> None:
 
 
 def generate(scene: str, out_dir, frames: int | None = None, size=(640, 480), noise: str = "kinect",
-             seed: int = 0, progress: bool = False) -> Path:
-    """Render `scene` into `out_dir` (created) and write its ground truth; returns the folder."""
+             seed: int = 0, progress: bool = False, light: str = "camera") -> Path:
+    """Render `scene` into `out_dir` (created) and write its ground truth; returns the folder.
+    `light`: the lamp beside the camera or left in the room (texture.light_direction)."""
     if scene not in SCENES:
         raise InputError(None, f"unknown scene {scene!r}; choose one of: {', '.join(SCENES)}")
     if noise not in NOISE_MODELS:
         raise InputError(None, f"unknown noise model {noise!r}; choose kinect or none")
+    if light not in LIGHTS:
+        raise InputError(None, f"unknown light {light!r}; choose {' or '.join(LIGHTS)}")
     frames = SCENES[scene].default_frames if frames is None else int(frames)
     w, h = (int(x) for x in size)
     if frames < 1 or w < 8 or h < 8:
@@ -157,7 +160,8 @@ def generate(scene: str, out_dir, frames: int | None = None, size=(640, 480), no
             # The colour noise has a stream of its own: the depth noise stays what it was before
             # synth wrote colour.
             color = shade(depth, normal_map, material_map,
-                          np.random.default_rng([seed, i, 1]) if noise == "kinect" else None)
+                          np.random.default_rng([seed, i, 1]) if noise == "kinect" else None,
+                          light=light_direction(light, camera_to_world[i], camera_to_world[0]))
             if noise == "kinect":
                 rng = np.random.default_rng([seed, i])
                 depth = kinect_noise(depth, incidence_cosine(normal_map, intr), intr, rng)
@@ -203,6 +207,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", type=_size, default=(640, 480), metavar="WxH", help="image size (default 640x480)")
     parser.add_argument("--noise", choices=NOISE_MODELS, default="kinect", help="sensor noise model (default kinect)")
     parser.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    parser.add_argument("--light", choices=LIGHTS, default="camera",
+                        help="the lamp beside the camera or left where it stood in the first frame (default camera)")
     parser.add_argument("--list", action="store_true", help="list the scenes and exit")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -218,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(None, f"unknown scene {args.scene!r}; choose one of: {', '.join(SCENES)}")
     start = time.perf_counter()
     out = generate(args.scene, args.out, args.frames, args.size, args.noise, args.seed,
-                   progress=not args.no_progress and sys.stderr.isatty())
+                   progress=not args.no_progress and sys.stderr.isatty(), light=args.light)
     gt = load_groundtruth(out)
     stats = motion_stats(gt.vertices, gt.faces, gt.moving, gt.camera_to_world)
     print(f"{args.scene}: {len(gt.frames)} frames {gt.intrinsics.width}x{gt.intrinsics.height}, noise {args.noise}, "

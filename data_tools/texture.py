@@ -3,8 +3,9 @@
 The albedo is a function of the material point (a vertex's position in the scene's first frame,
 interpolated over the triangles), so the texture moves with the surface as paint would; it is
 value noise at two scales (2 and 7 cm cells), blobs and corners that SIFT and ORB find. The
-light is a lamp beside the camera (fixed in the camera frame), so shading changes as a surface
-turns, as it does on a real recording.
+light is a lamp beside the camera (fixed in the camera frame: shading changes as a surface turns
+or the camera moves) or, with `synth --light room`, that lamp left where it stood beside the first
+frame's camera (fixed in the room: a still surface keeps its shading however the camera moves).
 """
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import numpy as np
 
 BACKGROUND_RGB = (0.25, 0.25, 0.27)          # where no surface is drawn (depth 0)
 LIGHT_DIRECTION = np.array([-0.35, -0.5, -1.0]) / np.linalg.norm([-0.35, -0.5, -1.0])   # towards the lamp
+LIGHTS = ("camera", "room")
 AMBIENT = 0.35
 CELLS_M = (0.02, 0.07)
 NOISE_LEVELS = 2.0                           # sigma of the 8-bit sensor noise
@@ -53,15 +55,26 @@ def albedo(material: np.ndarray, seed: int = 0) -> np.ndarray:
     return np.clip(0.5 + 1.8 * (rgb - 0.5), 0.1, 0.95)
 
 
+def light_direction(light: str, camera_to_world: np.ndarray, first_camera_to_world: np.ndarray) -> np.ndarray:
+    """(3,) the direction towards the lamp in a frame's camera (camera_to_world): beside it
+    ("camera"), or where it stood beside the first frame's camera ("room")."""
+    if light not in LIGHTS:
+        raise ValueError(f"light is one of {LIGHTS}, not {light!r}")
+    if light == "camera":
+        return LIGHT_DIRECTION
+    return np.asarray(camera_to_world, np.float64)[:3, :3].T @ np.asarray(first_camera_to_world)[:3, :3] @ LIGHT_DIRECTION
+
+
 def shade(depth_m: np.ndarray, normal_map: np.ndarray, material_map: np.ndarray, rng: np.random.Generator | None,
-          seed: int = 0) -> np.ndarray:
+          seed: int = 0, light: np.ndarray | None = None) -> np.ndarray:
     """(H, W, 3) uint8 RGB of one frame: albedo x (ambient + Lambert) where depth > 0, the
-    background elsewhere, plus Gaussian 8-bit noise when `rng` is given."""
+    background elsewhere, plus Gaussian 8-bit noise when `rng` is given. `light`: the direction
+    towards the lamp in the camera frame (light_direction; None: the lamp beside the camera)."""
     h, w = depth_m.shape
     image = np.empty((h, w, 3))
     image[:] = BACKGROUND_RGB
     drawn = depth_m > 0
-    lambert = np.clip(normal_map[drawn] @ LIGHT_DIRECTION, 0.0, None)
+    lambert = np.clip(normal_map[drawn] @ (LIGHT_DIRECTION if light is None else light), 0.0, None)
     image[drawn] = albedo(material_map[drawn], seed) * (AMBIENT + (1 - AMBIENT) * lambert)[:, None]
     image *= 255.0
     if rng is not None:

@@ -238,3 +238,39 @@ def test_synth_writes_registered_colour(tmp_path):
     # the ball and table are textured, the space behind them the plain background (BGR on disk)
     drawn = depth > 0
     assert color[drawn].std() > 20 and (color[~drawn] == [69, 64, 64]).all()
+
+
+def test_room_light_stays_where_the_first_camera_left_it():
+    """Known answer: under the room's lamp a world normal's Lambert term (n . l in the camera
+    frame) is the same from every camera; the camera's lamp is the same direction in each."""
+    from surfelwarp.data_tools.texture import LIGHT_DIRECTION, light_direction
+    from surfelwarp.geometry.se3 import se3_exp
+
+    rng = np.random.default_rng(2)
+    poses = [se3_exp(np.concatenate([rng.normal(0.0, 0.5, 3), rng.normal(0.0, 0.2, 3)])) for _ in range(4)]
+    n_world = rng.normal(size=(10, 3))
+    n_world /= np.linalg.norm(n_world, axis=1, keepdims=True)
+    lit = [(n_world @ T[:3, :3]) @ light_direction("room", T, poses[0]) for T in poses]   # n_c = R^T n_w
+    np.testing.assert_allclose(lit[1:], np.repeat(lit[:1], 3, 0), atol=1e-12)
+    np.testing.assert_allclose(lit[0], n_world @ poses[0][:3, :3] @ LIGHT_DIRECTION, atol=1e-12)
+    assert np.abs(np.subtract(*[(n_world @ T[:3, :3]) @ LIGHT_DIRECTION for T in poses[:2]])).max() > 0.1
+    assert all(light_direction("camera", T, poses[0]) is LIGHT_DIRECTION for T in poses)
+    with pytest.raises(ValueError):
+        light_direction("sun", poses[0], poses[0])
+
+
+def test_synth_room_light(tmp_path):
+    """The first frame is lit alike by both lamps; once the camera has moved round the still
+    life, not; an unknown light is a clear error that writes nothing."""
+    frames = {}
+    for light in ("camera", "room"):
+        out = synth.generate("orbit", tmp_path / light, frames=6, size=(160, 120), noise="none", light=light)
+        frames[light] = [cv2.imread(str(out / f"frame-{i:06d}.color.png")).astype(int) for i in (0, 5)]
+    assert np.array_equal(frames["camera"][0], frames["room"][0])
+    assert np.abs(frames["camera"][1] - frames["room"][1]).max() > 10
+    with pytest.raises(InputError):
+        synth.generate("orbit", tmp_path / "sun", frames=1, size=(32, 24), light="sun")
+    assert not (tmp_path / "sun").exists()
+    parser = argparse.ArgumentParser()
+    synth.add_arguments(parser)
+    assert parser.parse_args(["orbit", "--out", "x", "--light", "room"]).light == "room"
