@@ -179,7 +179,8 @@ def generate(scene: str, out_dir, frames: int | None = None, size=(640, 480), no
     np.savez(out / "groundtruth.npz", vertices=vertices, faces=anim.faces, moving=anim.moving, part=anim.part,
              camera_to_world=camera_to_world, frames=np.arange(frames, dtype=np.int32),
              intrinsics=np.array([intr.fx, intr.fy, intr.cx, intr.cy]), size=np.array([w, h], np.int32),
-             scene=np.array(scene), noise=np.array(noise), seed=np.array(seed), depth_scale=np.array(DEPTH_SCALE))
+             scene=np.array(scene), noise=np.array(noise), seed=np.array(seed), depth_scale=np.array(DEPTH_SCALE),
+             light=np.array(light))
     return out
 
 

@@ -62,7 +62,8 @@ def light_direction(light: str, camera_to_world: np.ndarray, first_camera_to_wor
         raise ValueError(f"light is one of {LIGHTS}, not {light!r}")
     if light == "camera":
         return LIGHT_DIRECTION
-    return np.asarray(camera_to_world, np.float64)[:3, :3].T @ np.asarray(first_camera_to_world)[:3, :3] @ LIGHT_DIRECTION
+    R, R0 = (np.asarray(T, np.float64)[:3, :3] for T in (camera_to_world, first_camera_to_world))
+    return R.T @ R0 @ LIGHT_DIRECTION
 
 
 def shade(depth_m: np.ndarray, normal_map: np.ndarray, material_map: np.ndarray, rng: np.random.Generator | None,

@@ -267,6 +267,7 @@ def test_synth_room_light(tmp_path):
         out = synth.generate("orbit", tmp_path / light, frames=6, size=(160, 120), noise="none", light=light)
         frames[light] = [cv2.imread(str(out / f"frame-{i:06d}.color.png")).astype(int) for i in (0, 5)]
     assert np.array_equal(frames["camera"][0], frames["room"][0])
+    assert str(np.load(tmp_path / "room" / "groundtruth.npz")["light"]) == "room"
     assert np.abs(frames["camera"][1] - frames["room"][1]).max() > 10
     with pytest.raises(InputError):
         synth.generate("orbit", tmp_path / "sun", frames=1, size=(32, 24), light="sun")
