@@ -24,6 +24,7 @@ from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, Featu
                                           near_prediction, pixel_values, refine, solved_index, surface_depth,
                                           where_image)
 from surfelwarp.tracking.patch_align import MotionPrior
+from surfelwarp.tracking.relight import Relight
 from surfelwarp.tracking.rigidity import locally_rigid
 
 
@@ -224,7 +225,8 @@ class ColourMatcher:
         centres = model.vertex_map[grid[:, 1], grid[:, 0]].astype(np.float64)
         pa = self.intrinsics.project(centres).astype(np.float32)
         depth = where_image(drawn, model.vertex_map[..., 2], surface_depth(last.vertex_map, last.valid))
-        pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa, p, depth, prior, shift_px)
+        relight = None if model.normal_map is None else Relight(model.normal_map, drawn, obs.valid)
+        pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa, p, depth, prior, shift_px, relight)
         m = checked_points(pa[inside], pb[inside], centres[inside], np.ones(int(inside.sum()), bool), *current)
         return self._on_model(m, model, field, p.flow_weight)
 

@@ -22,6 +22,7 @@ from pykdtree.kdtree import KDTree
 from surfelwarp.geometry.se3 import transform_points
 from surfelwarp.tracking.descriptors import nearest_both_ways
 from surfelwarp.tracking.patch_align import FAILED, MotionPrior, align
+from surfelwarp.tracking.relight import Relight, relit, shading_ratio
 from surfelwarp.tracking.rigidity import locally_rigid
 
 
@@ -227,13 +228,15 @@ def grid_pixels(mask: np.ndarray, stride_px: int) -> np.ndarray:
 
 def flow_at(previous_color: np.ndarray, current_color: np.ndarray, window: np.ndarray, pixels: np.ndarray,
             params: FeatureParams, previous_depth: np.ndarray | None = None, prior: MotionPrior | None = None,
-            shift_px: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+            shift_px: np.ndarray | None = None, relight: Relight | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Dense optical flow (OpenCV's DIS) from the previous to the current image, computed on the
     box around `window` and read bilinearly at sub-pixel `pixels` (x, y): (where they go, whether
     they are inside the box). No forward-backward check: on the DeepDeform shirt (20 cm of
     motion) it kept 25 of the 713 good pairs at 8 px; local rigidity (checked_pairs) removes the
     wrong ones. `shift_px` (x, y): a motion to start the search from (the features' common
-    motion: `fast`'s ball, 25 px a frame, was found by DIS from zero on some frames only)."""
+    motion: `fast`'s ball, 25 px a frame, was found by DIS from zero on some frames only).
+    `relight`: the previous image is the model's colour there, relit by the flow before the
+    pairs are aligned (relight.py)."""
     rows, cols = bounding_box(np.asarray(window, bool))
     h, w = rows.stop - rows.start, cols.stop - cols.start
     inside = np.zeros(len(pixels), bool)
@@ -250,6 +253,11 @@ def flow_at(previous_color: np.ndarray, current_color: np.ndarray, window: np.nd
                     None) + s.astype(np.float32)
     local = pixels - np.float32([cols.start, rows.start])
     inside = (local[:, 0] >= 0) & (local[:, 0] <= w - 1) & (local[:, 1] >= 0) & (local[:, 1] <= h - 1)
+    coef = None if relight is None else shading_ratio(previous[rows, cols], current, flow, (rows.start, cols.start),
+                                                      relight)
+    if coef is not None:
+        previous = previous.astype(np.float32)
+        previous[rows, cols] = relit(previous[rows, cols], coef, (rows.start, cols.start), relight)
     maps = np.ascontiguousarray(local.reshape(-1, 1, 2), np.float32)
     moved = cv2.remap(flow, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     target, keep = refine(previous, current, pixels, pixels + moved.reshape(-1, 2), params, previous_depth, prior)
@@ -325,7 +333,8 @@ class ModelView:
     position (world), unique id (ascending; None: points do not live on), skinning knn and
     weights; optionally the drawn points (camera frame at the last pose), the fused colour
     (uint8 RGB) where `color_drawn`, interpolated about the surfels' centres
-    (render.colour_map), and every surfel's reference position (world)."""
+    (render.colour_map), every surfel's reference position (world) and the drawn normals (camera
+    frame at the last pose)."""
     index_map: np.ndarray
     visible: np.ndarray
     live_position: np.ndarray
@@ -336,6 +345,7 @@ class ModelView:
     color_map: np.ndarray | None = None
     color_drawn: np.ndarray | None = None
     ref_position: np.ndarray | None = None
+    normal_map: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -259,7 +259,7 @@ class SurfelWarpMethod:
         if self.has_color and self.tracker.uses_features:
             color, drawn = colour_map(maps, m.color_weight > 0, m.color)
         return ModelView(maps.index, visible, m.live_position, m.ids, m.knn, m.weights, maps.vertex, color, drawn,
-                         m.ref_position)
+                         m.ref_position, maps.normal)
 
     def _new_reference(self, obs: CameraObservation) -> None:
         """Nodes sampled from S_ref with identity transforms, every surfel skinned to them."""
