@@ -19,7 +19,7 @@ The causes, and what takes each out here:
   mean EPE 0.81 mm against 0.43 for depth alone, and 0.44 with the lamp's shading turned off.
   On a soft texture (a ball's) the plane took what resolves the shift (tests/tracking/
   test_features.py: pairs within 1 px 95 -> 90 %), hence the gate. `orbit` 0.75 mm with it,
-  0.63 with the model's colour relit as well (relight.py).
+  0.62 with the model's colour relit as well (relight.py).
 
 `align` is the compiled kernel; patch_reference.align_reference the numpy reference the tests
 compare it with.

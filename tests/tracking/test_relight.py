@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 
 from surfelwarp.tracking.features import FeatureParams, flow_at, grid_pixels
-from surfelwarp.tracking.relight import MIN_PIXELS, Relight, relit, shading_ratio
+from surfelwarp.tracking.relight import MIN_PIXELS, SCALE_RANGE, Relight, relit, shading_ratio
 
 from test_patch_align import texture
 
@@ -93,3 +93,16 @@ def test_flow_pairs_on_a_shaded_image_align_as_on_an_unshaded_one():
     assert p90[True, False] > 1.2 * p90[False, False], p90
     assert p90[True, True] < 1.1 * p90[False, False], p90
     assert abs(p90[False, True] - p90[False, False]) < 0.005, p90             # unshaded: relighting moves little
+
+
+def test_the_scale_is_held_where_the_fit_extrapolates():
+    """A fit made on nearly one normal (a wall) can put any b on the others: the scale stays in
+    SCALE_RANGE."""
+    a = np.full((40, 50), 100.0, np.float32)
+    n = np.zeros((40, 50, 3), np.float32)
+    n[..., 2] = -1.0
+    n[:, 25:] = [0.8, 0.0, -0.6]                 # a surface turned 53 degrees, left out of the fit
+    out = relit(a, np.array([1.0, 30.0, 0.0, 0.0]), (0, 0), Relight(n, np.ones((40, 50), bool), n[..., 2] < 0))
+    assert np.allclose(out[:, :25], 100.0) and np.allclose(out[:, 25:], 100.0 * SCALE_RANGE[1])
+    out = relit(a, np.array([1.0, -30.0, 0.0, 0.0]), (0, 0), Relight(n, np.ones((40, 50), bool), n[..., 2] < 0))
+    assert np.allclose(out[:, 25:], 100.0 * SCALE_RANGE[0])
