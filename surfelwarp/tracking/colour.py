@@ -19,10 +19,10 @@ from surfelwarp.geometry.se3 import invert, transform_points
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.ahead import FoundAhead
 from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
-                                          ModelView, checked_pairs, checked_points, combine, detect, flow_at,
-                                          flow_pairs, grid_pixels, lift, match_descriptors, match_frames,
-                                          near_prediction, pixel_values, refine, solved_index, surface_depth,
-                                          where_image)
+                                          ModelView, checked_pairs, checked_points, combine, detect, lift,
+                                          match_descriptors, match_frames, near_prediction, pixel_values, refine,
+                                          solved_index, surface_depth, where_image)
+from surfelwarp.tracking.flow import flow_at, flow_pairs, grid_pixels
 from surfelwarp.tracking.patch_align import MotionPrior
 from surfelwarp.tracking.relight import Relight
 from surfelwarp.tracking.rigidity import locally_rigid

@@ -11,8 +11,9 @@ from surfelwarp.config import range_problem
 from surfelwarp.data_tools.texture import albedo
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.tracking.colour import common_shift
-from surfelwarp.tracking.features import (FeatureMatches, FeatureParams, checked_pairs, detect, flow_at, flow_pairs,
-                                          grey, grid_pixels, match_frames, refine, surface_depth, where_image)
+from surfelwarp.tracking.features import (FeatureMatches, FeatureParams, checked_pairs, detect, grey, match_frames,
+                                          refine, surface_depth, where_image)
+from surfelwarp.tracking.flow import flow_at, flow_pairs, grid_pixels
 from surfelwarp.tracking.rigidity import locally_rigid, rigidity_votes
 from surfelwarp.tracking.descriptors import nearest_both_ways
 

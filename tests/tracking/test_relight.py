@@ -4,7 +4,8 @@ flow's pairs on a shaded pair of images."""
 import cv2
 import numpy as np
 
-from surfelwarp.tracking.features import FeatureParams, flow_at, grid_pixels
+from surfelwarp.tracking.features import FeatureParams
+from surfelwarp.tracking.flow import flow_at, grid_pixels
 from surfelwarp.tracking.relight import MIN_PIXELS, SCALE_RANGE, Relight, relit, shading_ratio
 
 from test_patch_align import texture
