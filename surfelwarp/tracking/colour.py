@@ -19,7 +19,7 @@ from surfelwarp.geometry.se3 import invert, transform_points
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.ahead import FoundAhead
 from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
-                                          ModelView, checked_pairs, checked_points, combine, detect, lift,
+                                          ModelView, checked_pairs, checked_points, combine, detect, grey, lift,
                                           match_descriptors, match_frames, near_prediction, pixel_values, refine,
                                           solved_index, surface_depth, where_image)
 from surfelwarp.tracking.flow import flow_at, flow_pairs, grid_pixels
@@ -225,7 +225,8 @@ class ColourMatcher:
         centres = model.vertex_map[grid[:, 1], grid[:, 0]].astype(np.float64)
         pa = self.intrinsics.project(centres).astype(np.float32)
         depth = where_image(drawn, model.vertex_map[..., 2], surface_depth(last.vertex_map, last.valid))
-        relight = None if model.normal_map is None else Relight(model.normal_map, drawn, obs.valid)
+        relight = None if model.normal_map is None else Relight(model.normal_map, drawn, obs.valid, grey(last.color),
+                                                                 last.valid)
         pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa, p, depth, prior, shift_px, relight)
         m = checked_points(pa[inside], pb[inside], centres[inside], np.ones(int(inside.sum()), bool), *current)
         return self._on_model(m, model, field, p.flow_weight)
