@@ -19,7 +19,7 @@ from surfelwarp.geometry.se3 import invert, transform_points
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.ahead import FoundAhead
 from surfelwarp.tracking.features import (AnchoredMatches, FeatureMatches, FeatureParams, Keyframe, Keypoints,
-                                          ModelView, checked_pairs, checked_points, combine, detect, grey, lift,
+                                          ModelView, checked_pairs, checked_points, combine, detect, lift,
                                           match_descriptors, match_frames, near_prediction, pixel_values, refine,
                                           solved_index, surface_depth, where_image)
 from surfelwarp.tracking.flow import flow_at, flow_pairs, grid_pixels
@@ -167,7 +167,8 @@ class ColourMatcher:
                 last_matches = match_frames(last_kp, kp, last.vertex_map, last.valid, obs.vertex_map, obs.valid, T, p)
             found.append(self._on_model(last_matches, model, field, 1.0, ended))
             if p.flow:
-                found.append(self._flow_matches(last, obs, model, field, T, self._prior(T_last, T_predicted),
+                found.append(self._flow_matches(last, last_kp.image, obs, model, field, T,
+                                                self._prior(T_last, T_predicted),
                                                 common_shift(last_matches, p.flow_shift_px), ended))
         if not found:
             return None
@@ -203,13 +204,14 @@ class ColourMatcher:
         keep = np.flatnonzero(ok)[locally_rigid(predicted[ok], seen[ok], p)]
         return AnchoredMatches(solved[keep], kf.points[ia[keep]], q[keep], np.ones(len(keep)))
 
-    def _flow_matches(self, last: CameraObservation, obs: CameraObservation, model: ModelView, field: WarpField,
-                      T_last_to_now: np.ndarray, prior: MotionPrior | None = None,
+    def _flow_matches(self, last: CameraObservation, last_grey: np.ndarray, obs: CameraObservation,
+                      model: ModelView, field: WarpField, T_last_to_now: np.ndarray, prior: MotionPrior | None = None,
                       shift_px: np.ndarray | None = None, ended: WarpField | None = None) -> AnchoredMatches:
         """Dense flow into `obs` from the model's fused colour drawn at the last pose: the flow
         finds where the model's own texture went, so frame-to-frame errors do not add up as
         they do with flow from the last frame (used where the model has no colour drawn; its
-        pairs start where the last frame saw them, `ended`'s surface, _on_model)."""
+        pairs start where the last frame saw them, `ended`'s surface, _on_model). `last_grey`:
+        the last frame's grey image (its features' Keypoints.image), which relights the model's."""
         p = self.params
         current = (obs.vertex_map, obs.valid, T_last_to_now, p)
         if model.color_map is None or model.vertex_map is None or not model.color_drawn.any():
@@ -225,7 +227,7 @@ class ColourMatcher:
         centres = model.vertex_map[grid[:, 1], grid[:, 0]].astype(np.float64)
         pa = self.intrinsics.project(centres).astype(np.float32)
         depth = where_image(drawn, model.vertex_map[..., 2], surface_depth(last.vertex_map, last.valid))
-        relight = None if model.normal_map is None else Relight(model.normal_map, drawn, obs.valid, grey(last.color),
+        relight = None if model.normal_map is None else Relight(model.normal_map, drawn, obs.valid, last_grey,
                                                                  last.valid)
         pb, inside = flow_at(source, obs.color, drawn | obs.valid, pa, p, depth, prior, shift_px, relight)
         m = checked_points(pa[inside], pb[inside], centres[inside], np.ones(int(inside.sum()), bool), *current)
