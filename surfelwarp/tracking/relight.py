@@ -119,14 +119,6 @@ class ModelShading:
         return coef
 
 
-def shading_ratio(previous: np.ndarray, current: np.ndarray, flow: np.ndarray, origin: tuple[int, int],
-                  relight: Relight) -> np.ndarray | None:
-    """(4,) a, b of the ratio a + b . n of the current grey image to the `previous` one (a box of the
-    full image at `origin` (row, column)), from the pixels `flow` (box, (h, w, 2) x, y) takes into
-    the current frame's depth, every STRIDE_PX-th a side; None with too few of them."""
-    return ModelShading(previous, origin, relight).ratio(current, relight.current_valid, flow)
-
-
 def relit(previous: np.ndarray, coef: np.ndarray, origin: tuple[int, int], relight: Relight) -> np.ndarray:
     """The `previous` box (grey, float32) scaled by a + b . n (held to SCALE_RANGE) where it shows
     the model's colour."""

@@ -8,7 +8,7 @@ import numpy as np
 
 from surfelwarp.tracking.features import FeatureParams
 from surfelwarp.tracking.flow import flow_at, grid_pixels
-from surfelwarp.tracking.relight import MIN_PIXELS, SCALE_RANGE, ModelShading, Relight, relit, shading_ratio
+from surfelwarp.tracking.relight import MIN_PIXELS, SCALE_RANGE, ModelShading, Relight, relit
 
 from test_patch_align import texture
 
@@ -18,6 +18,11 @@ def bowl_normals(h, w, reach_px=150.0):
     v, u = np.mgrid[0:h, 0:w].astype(np.float32)
     n = np.stack([(u - w / 2) / reach_px, (v - h / 2) / reach_px, -np.ones_like(u)], -1)
     return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def shading_ratio(previous, current, flow, origin, relight):
+    """The fit of `current` against the model's `previous` box at `origin` through `flow`."""
+    return ModelShading(previous, origin, relight).ratio(current, relight.current_valid, flow)
 
 
 COEF = np.float32([1.0, 0.4, 0.25, 0.0])      # a, b: the ratio spans 0.62-1.38 over the image
