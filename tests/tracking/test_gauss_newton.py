@@ -152,6 +152,29 @@ def test_twist_dual_quaternions_compiled_equal_numpy_to_the_bit(problem):
     D = twist_dual_quaternions(problem.field)[3]
     np.testing.assert_array_equal(D[0], [0, 0.5, 0, 0, 0, 0, 0.5 * p[2], -0.5 * p[1]])
     np.testing.assert_array_equal(D[4], [0, 0, 0, 0, 0, 0, 0.5, 0])
+    # A shift moves only the dual part: the blocks' products skip these zeros (sandwich).
+    assert np.all(twist_dual_quaternions(random_field(problem, seed=4))[:, 3:, :4] == 0)
+
+
+def test_sandwich_has_the_full_products_bits(problem):
+    """The blocks D_lo A D_hi^T as the plain triple loop over every product gives them, to the
+    bit: the products the kernel skips (D's zeros) add nothing."""
+    from surfelwarp.tracking.assembly import _SYM8
+    from surfelwarp.tracking.assembly_kernels import sandwich
+    from surfelwarp.tracking.blend_jacobian import twist_dual_quaternions
+    rng = np.random.default_rng(3)
+    D = twist_dual_quaternions(random_field(problem, seed=5))
+    lo = rng.integers(0, len(D), 40)
+    hi = rng.integers(0, len(D), 40)
+    A = rng.normal(size=(40, 36))
+    sym = _SYM8.reshape(8, 8)
+    out = np.empty((40, 6, 6))
+    sandwich(D, lo, hi, A, sym, out, 7)
+    for n in range(40):
+        F = A[n][sym]
+        DA = [[sum((D[lo[n], i, m] * F[m, j] for m in range(8)), 0.0) for j in range(8)] for i in range(6)]
+        ref = [[sum((DA[i][m] * D[hi[n], j, m] for m in range(8)), 0.0) for j in range(6)] for i in range(6)]
+        assert np.array_equal(out[n], np.array(ref))
 
 
 def test_reg_jacobian_matches_finite_differences(problem):
