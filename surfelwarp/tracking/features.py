@@ -320,6 +320,16 @@ def combine(*sets: AnchoredMatches) -> AnchoredMatches:
                            np.concatenate([m.weights for m in sets])[first])
 
 
+def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The (H, W) image at points (x, y), interpolated bilinearly (clamped to the image)."""
+    h, w = image.shape
+    x, y = np.clip(x, 0.0, w - 1.0), np.clip(y, 0.0, h - 1.0)
+    x0, y0 = np.minimum(x.astype(np.int64), w - 2), np.minimum(y.astype(np.int64), h - 2)
+    fx, fy = x - x0, y - y0
+    top = image[y0, x0] * (1 - fx) + image[y0, x0 + 1] * fx
+    return top * (1 - fy) + (image[y0 + 1, x0] * (1 - fx) + image[y0 + 1, x0 + 1] * fx) * fy
+
+
 def pixel_values(pixels: np.ndarray, image: np.ndarray) -> np.ndarray:
     """The image's values at the pixel centres nearest to (x, y) positions."""
     h, w = image.shape[:2]

@@ -4,18 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from surfelwarp.tracking.features import bilinear as _bilinear
 from surfelwarp.tracking.patch_align import (ACCEPT_PX, ALIGNED, CONVERGED_PX, FAILED, MIN_SURFACE_SHARE, NOISE_GREY,
                                              PLAIN_PX, PRIOR_MIN_PX, SLOPE_KEEPS, TRANSLATION_ITERS, UNALIGNED,
                                              MotionPrior, _gradients, _patch)
-
-
-def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    h, w = image.shape
-    x, y = np.clip(x, 0.0, w - 1.0), np.clip(y, 0.0, h - 1.0)
-    x0, y0 = np.minimum(x.astype(np.int64), w - 2), np.minimum(y.astype(np.int64), h - 2)
-    fx, fy = x - x0, y - y0
-    top = image[y0, x0] * (1 - fx) + image[y0, x0 + 1] * fx
-    return top * (1 - fy) + (image[y0 + 1, x0] * (1 - fx) + image[y0 + 1, x0 + 1] * fx) * fy
 
 
 def _nearest(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from surfelwarp.tracking.features import bilinear
+
 SIGMA_PX = 4.0          # the local means' Gaussian: wider than the texture's blobs, narrower than the shading
 MIN_PIXELS = 500        # fewer model pixels than this with a place in the frame: not relit
 ERODE_PX = 9            # both masks shrunk by this box: the means near an edge mix in what is beyond it
@@ -55,15 +57,7 @@ def _local_mean(image: np.ndarray, mask: np.ndarray, x: np.ndarray, y: np.ndarra
     mean = num / np.maximum(den, 1e-6)
     u = np.clip((x + 0.5) * size[0] / w - 0.5, 0, size[0] - 1.001)
     v = np.clip((y + 0.5) * size[1] / h - 0.5, 0, size[1] - 1.001)
-    return _bilinear(mean, u, v)
-
-
-def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """The image at points (x, y) inside it, interpolated bilinearly."""
-    c, r = x.astype(int), y.astype(int)
-    fx, fy = x - c, y - r
-    top = image[r, c] * (1 - fx) + image[r, c + 1] * fx
-    return top * (1 - fy) + (image[r + 1, c] * (1 - fx) + image[r + 1, c + 1] * fx) * fy
+    return bilinear(mean, u, v)
 
 
 class ModelShading:

@@ -330,3 +330,13 @@ def test_common_shift_is_the_median_motion_beyond_a_bound():
     assert common_shift(m, 14.0) is None                     # |(12, -5)| = 13 px
     assert common_shift(m, 0.0) is None                      # 0: off
     assert common_shift(m.select(np.arange(7)), 8.0) is None  # too few to tell
+
+
+def test_bilinear_reads_a_plane_exactly_and_clamps_to_the_image():
+    from surfelwarp.tracking.features import bilinear
+    v, u = np.mgrid[0:5, 0:7].astype(np.float64)
+    image = 2.0 * u + 3.0 * v + 1.0                # bilinear interpolation is exact on a plane
+    x, y = np.array([0.0, 2.25, 5.5, 6.0]), np.array([0.0, 1.75, 3.5, 4.0])
+    np.testing.assert_allclose(bilinear(image, x, y), 2 * x + 3 * y + 1, atol=1e-12)
+    # outside: the border's value (the last row and column are reached, not read past)
+    np.testing.assert_allclose(bilinear(image, np.array([-3.0, 9.0]), np.array([-1.0, 7.0])), [1.0, 25.0])
