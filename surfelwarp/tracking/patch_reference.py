@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from surfelwarp.tracking.features import bilinear as _bilinear
+from surfelwarp.tracking.features import bilinear
 from surfelwarp.tracking.patch_align import (ACCEPT_PX, ALIGNED, CONVERGED_PX, FAILED, MIN_SURFACE_SHARE, NOISE_GREY,
                                              PLAIN_PX, PRIOR_MIN_PX, SLOPE_KEEPS, TRANSLATION_ITERS, UNALIGNED,
                                              MotionPrior, _gradients, _patch)
@@ -19,7 +19,7 @@ def steepest_descent(image: np.ndarray, pa: np.ndarray, ox: np.ndarray, oy: np.n
     """(n, S, 6): the derivative of the image sampled at pa + A (ox, oy) + t by the warp's
     parameters (A - I row by row, interleaved with t: a00, a01, tx, a10, a11, ty) at A = I, t = 0."""
     X, Y = pa[:, :1] + ox, pa[:, 1:] + oy
-    gx, gy = (_bilinear(g, X, Y) for g in _gradients(np.asarray(image, np.float64)))
+    gx, gy = (bilinear(g, X, Y) for g in _gradients(np.asarray(image, np.float64)))
     return np.stack([gx * ox, gx * oy, gx, gy * ox, gy * oy, gy], -1)
 
 
@@ -64,7 +64,7 @@ def align_reference(previous_grey: np.ndarray, current_grey: np.ndarray, pa: np.
 def _projected(previous, X, Y, w, basis, gradients):
     """The template normalised off the basis, its scale, the steepest descent images projected off
     the basis and the template, their Gauss-Newton matrix."""
-    Tn, sd = _normalised(_bilinear(previous, X, Y), w, basis)
+    Tn, sd = _normalised(bilinear(previous, X, Y), w, basis)
     SD = gradients / sd[..., None]
     SD = np.stack([_off_plane(SD[..., k], w, basis) for k in range(6)], -1)
     along = (w[..., None] * SD * Tn[..., None]).sum(1) / np.maximum((w * Tn * Tn).sum(1), 1e-12)[:, None]
@@ -134,8 +134,8 @@ def _iterate_reference(current, w, basis, Tn, SD, pb, ox, oy, shifts, max_shift_
         i = np.flatnonzero(active)
         if len(i) == 0:
             break
-        In, _ = _centred(_bilinear(current, t[i, :1] + A[i, 0, :1] * ox + A[i, 0, 1:] * oy + shifts[0, i],
-                                      t[i, 1:] + A[i, 1, :1] * ox + A[i, 1, 1:] * oy + shifts[1, i]), w[i], basis[i])
+        In, _ = _centred(bilinear(current, t[i, :1] + A[i, 0, :1] * ox + A[i, 0, 1:] * oy + shifts[0, i],
+                                     t[i, 1:] + A[i, 1, :1] * ox + A[i, 1, 1:] * oy + shifts[1, i]), w[i], basis[i])
         r = np.einsum("nsj,ns->nj", SD[i], w[i] * (In - Tn[i]))
         d = np.zeros((len(i), 6))
         if affine:

@@ -6,8 +6,9 @@ import numpy as np
 
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.geometry.se3 import se3_exp, se3_log
+from surfelwarp.tracking.features import bilinear
 from surfelwarp.tracking.patch_align import ALIGNED, FAILED, UNALIGNED, MotionPrior, _patch, align
-from surfelwarp.tracking.patch_reference import _bilinear, align_reference, steepest_descent
+from surfelwarp.tracking.patch_reference import align_reference, steepest_descent
 
 
 def texture(h=240, w=320, seed=0):
@@ -89,8 +90,8 @@ def test_steepest_descent_images_match_finite_differences():
 
         def sample(sign):
             a00, a01, tx, a10, a11, ty = sign * d
-            return _bilinear(smooth, pa[:, :1] + (1 + a00) * ox + a01 * oy + tx,
-                             pa[:, 1:] + a10 * ox + (1 + a11) * oy + ty)
+            return bilinear(smooth, pa[:, :1] + (1 + a00) * ox + a01 * oy + tx,
+                            pa[:, 1:] + a10 * ox + (1 + a11) * oy + ty)
         numeric = (sample(1) - sample(-1)) / (2 * eps)
         scale = np.abs(numeric).max()
         # Scharr's smoothed derivative against the bilinear image's: a few per cent on this texture
