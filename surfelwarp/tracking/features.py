@@ -21,7 +21,7 @@ from pykdtree.kdtree import KDTree
 
 from surfelwarp.geometry.se3 import transform_points
 from surfelwarp.tracking.descriptors import nearest_both_ways
-from surfelwarp.tracking.patch_align import FAILED, MotionPrior, align
+from surfelwarp.tracking.patch_align import ALIGNED, FAILED, PLAIN, MotionPrior, align
 from surfelwarp.tracking.rigidity import locally_rigid
 
 
@@ -149,15 +149,44 @@ def refine(previous_grey: np.ndarray | None, current_grey: np.ndarray | None, pa
     """(pb moved to where pa's patch of the previous image lies in the current one, whether to
     keep the pair): patch_align.align on the patch pixels of pa's surface (`previous_depth`,
     metres, 0: none), each moved first as `prior` predicts (patch_align.MotionPrior). A pair
-    whose textured patch matches nothing within refine_max_px of pb is wrong and dropped; one
-    whose patch cannot say (plain, at a depth edge) is kept as found: dropping those too cost
-    2.4 mm of EPE on the plain DeepDeform shirt, keeping the failed ones lost the track of `fast`
-    (EPE 0.9 -> 10.9 mm)."""
+    whose textured patch matches nothing within refine_max_px of pb is wrong and dropped
+    (keeping those lost the track of `fast`, EPE 0.9 -> 10.9 mm); one whose patch cannot say is
+    kept, at a depth edge as found, a plain one moved by its aligned neighbours' correction
+    (neighbours_correction)."""
     if params.refine_radius_px == 0 or len(pa) == 0 or previous_grey is None or current_grey is None:
         return pb, np.ones(len(pa), bool)
     moved, status = align(previous_grey, current_grey, pa, pb, params.refine_radius_px, previous_depth,
                           params.refine_depth_m, params.refine_max_px, prior=prior)
+    plain, aligned = np.flatnonzero(status == PLAIN), np.flatnonzero(status == ALIGNED)
+    moved[plain] += neighbours_correction(pa[plain], pa[aligned], moved[aligned] - pb[aligned])
     return moved.astype(np.float32), status != FAILED
+
+
+CORRECTED_BY = 8            # a plain patch's pair takes the median correction of up to this many
+CORRECTION_REACH_PX = 24.0  # aligned pairs within this distance (three steps of the flow's grid),
+CORRECTION_MIN = 3          # and none with fewer of them
+
+
+def neighbours_correction(points: np.ndarray, aligned: np.ndarray, correction: np.ndarray) -> np.ndarray:
+    """(n, 2) the median `correction` (the refinement's move of each `aligned` pair, from where it
+    was found) of the aligned pairs nearest each of `points`: 0 where fewer than CORRECTION_MIN
+    lie within CORRECTION_REACH_PX. DIS's flow falls short of the motion, and a lamp's shading
+    moves it, the same way over a neighbourhood; a plain patch cannot be aligned itself, so it
+    takes what its aligned neighbours needed. Against keeping its pair as found (run + eval):
+    `touch` over five seeds 0.632 -> 0.606 mm, `orbit` 0.54 -> 0.53 (ATE 0.183 -> 0.163 cm),
+    `release` over ten seeds 1.095 -> 1.076; dropping those pairs instead cost `release` 1.188."""
+    out = np.zeros((len(points), 2))
+    if len(points) == 0 or len(aligned) < CORRECTION_MIN:
+        return out
+    k = min(CORRECTED_BY, len(aligned))
+    d, nb = KDTree(np.ascontiguousarray(aligned, np.float64)).query(np.ascontiguousarray(points, np.float64), k=k,
+                                                                   distance_upper_bound=CORRECTION_REACH_PX)
+    d, nb = d.reshape(len(points), k), nb.reshape(len(points), k)
+    near = np.isfinite(d)
+    values = np.where(near[..., None], np.asarray(correction, np.float64)[np.minimum(nb, len(aligned) - 1)], np.nan)
+    enough = near.sum(1) >= CORRECTION_MIN
+    out[enough] = np.nanmedian(values[enough], axis=1)
+    return out
 
 
 def match_descriptors(a: Keypoints, b: Keypoints, params: FeatureParams) -> tuple[np.ndarray, np.ndarray]:

@@ -40,8 +40,9 @@ CONVERGED_PX = 1e-2          # the iterations stop at a smaller step
 ACCEPT_PX = 0.05             # an alignment whose last step was longer has not converged
 NOISE_GREY = 2.0             # image noise (8-bit grey levels) and the precision a patch's texture
 PLAIN_PX = 0.2               # must allow against it (its weakest gradient direction), or it is plain
-ALIGNED, UNALIGNED, FAILED = 1, 0, -1    # status: aligned; no say (plain patch, too little of its
-                                         # surface); textured, but nothing matches near the start
+ALIGNED, UNALIGNED, FAILED, PLAIN = 1, 0, -1, 2    # status: aligned; no say (too little of its surface);
+                                                  # textured, but nothing matches near the start; no
+                                                  # say (too little texture)
 SLOPE_KEEPS = 0.4            # the share of the weakest direction's texture the shading's slope must
                              # leave for it to be projected out (else gain and offset alone)
 TRANSLATION_ITERS = 20       # iterations of the shift alone, at most, before the affine ones
@@ -149,7 +150,7 @@ def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window,
         SD[3, s], SD[4, s], SD[5, s] = ty * ox[s], ty * oy[s], ty
     weakest = _weakest(gxx, gxy, gyy)
     if weakest <= (NOISE_GREY / PLAIN_PX) ** 2:
-        result[0], result[1], result[2] = bx, by, UNALIGNED
+        result[0], result[1], result[2] = bx, by, PLAIN
         return
     raw = SD.copy()
     H = project_out(SD, w, E, Tn)
@@ -337,11 +338,11 @@ def align(previous_grey: np.ndarray, current_grey: np.ndarray, pa: np.ndarray, p
           depth: np.ndarray | None = None, depth_tol_m: float = 0.03, max_shift_px: float = 2.0, iters: int = 10,
           prior: MotionPrior | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(n, 2) where each patch of `previous_grey` around pa (x, y) lies in `current_grey`,
-    searched from pb (pb where not aligned), and (n,) int8 status: ALIGNED; UNALIGNED where the
-    patch cannot say (plain, or too little of it on its centre's surface); FAILED where it is
-    textured yet converges to nothing within max_shift_px of pb. `depth` (H, W) metres of
-    the previous image (0: none) keeps the patch to the pixels within depth_tol_m of its
-    centre's depth; None: every pixel. `prior` (with `depth`): the predicted motion of the previous
+    searched from pb (pb where not aligned), and (n,) int8 status: ALIGNED; PLAIN or UNALIGNED
+    where the patch cannot say (too little texture; too little of it on its centre's surface);
+    FAILED where it is textured yet converges to nothing within max_shift_px of pb. `depth`
+    (H, W) metres of the previous image (0: none) keeps the patch to the pixels within
+    depth_tol_m of its centre's depth; None: every pixel. `prior` (with `depth`): the predicted motion of the previous
     camera's points, whose relief the warp then follows (MotionPrior)."""
     if len(pa) == 0:
         return np.zeros((0, 2)), np.zeros(0, np.int8)

@@ -6,7 +6,7 @@ import numpy as np
 
 from surfelwarp.tracking.features import bilinear
 from surfelwarp.tracking.patch_align import (ACCEPT_PX, ALIGNED, CONVERGED_PX, FAILED, MIN_SURFACE_SHARE, NOISE_GREY,
-                                             PLAIN_PX, PRIOR_MIN_PX, SLOPE_KEEPS, TRANSLATION_ITERS, UNALIGNED,
+                                             PLAIN, PLAIN_PX, PRIOR_MIN_PX, SLOPE_KEEPS, TRANSLATION_ITERS, UNALIGNED,
                                              MotionPrior, _gradients, _patch)
 
 
@@ -57,7 +57,7 @@ def align_reference(previous_grey: np.ndarray, current_grey: np.ndarray, pa: np.
     surface = w.sum(1) >= MIN_SURFACE_SHARE * window.sum()
     aligned = surface & textured & (shift_step < ACCEPT_PX)
     moved = np.where((aligned & (warped_step < ACCEPT_PX))[:, None], warped, np.where(aligned[:, None], shift, pb))
-    status = np.where(aligned, ALIGNED, np.where(surface & textured, FAILED, UNALIGNED))
+    status = np.where(aligned, ALIGNED, np.where(surface & textured, FAILED, np.where(surface, PLAIN, UNALIGNED)))
     return moved, status.astype(np.int8)
 
 

@@ -11,9 +11,11 @@ from surfelwarp.config import range_problem
 from surfelwarp.data_tools.texture import albedo
 from surfelwarp.geometry.camera import Intrinsics
 from surfelwarp.tracking.colour import common_shift
-from surfelwarp.tracking.features import (FeatureMatches, FeatureParams, checked_pairs, detect, grey, match_frames,
+from surfelwarp.tracking.features import (CORRECTION_REACH_PX, FeatureMatches, FeatureParams, checked_pairs, detect,
+                                          grey, match_frames, neighbours_correction,
                                           refine, surface_depth, where_image)
 from surfelwarp.tracking.flow import flow_at, flow_pairs, grid_pixels
+from surfelwarp.tracking.patch_align import ALIGNED, PLAIN, align
 from surfelwarp.tracking.rigidity import locally_rigid, rigidity_votes
 from surfelwarp.tracking.descriptors import nearest_both_ways
 
@@ -147,6 +149,40 @@ def test_refinement_keeps_what_it_cannot_judge_and_drops_what_matches_nothing():
     assert not keep.any()
     moved, keep = refine(grey(rgb), grey(warped), pa, start, replace(params, refine_radius_px=0))
     assert keep.all() and np.array_equal(moved, start)
+
+
+def test_plain_pairs_take_their_aligned_neighbours_correction():
+    """Every pair found 0.4 px short of a 3 px shift (as DIS falls short): the textured ones are
+    aligned to the truth, the plain ones (in a flat square) take their neighbours' correction."""
+    rgb, _, _ = textured_plane()
+    rgb = rgb.copy()
+    rgb[200:260, 280:340] = 128
+    shifted = np.roll(rgb, (2, 3), axis=(0, 1))                  # the truth: 3 px right, 2 down
+    y, x = np.mgrid[150:311:8, 230:391:8]
+    pa = np.stack([x.ravel(), y.ravel()], -1).astype(np.float32)
+    truth = pa + [3.0, 2.0]
+    start = (truth - [0.4, 0.3]).astype(np.float32)
+    _, status = align(grey(rgb), grey(shifted), pa, start, 6)
+    plain = status == PLAIN
+    refined, keep = refine(grey(rgb), grey(shifted), pa, start, FeatureParams())
+    error = np.linalg.norm(refined - truth, axis=1)
+    assert keep.all() and plain.sum() >= 30
+    assert np.median(error[status == ALIGNED]) < 0.01
+    # found 0.5 px off; the ones beside the square's edge, whose patches barely reach the texture,
+    # hold their start, and the plain pairs nearest them move less
+    assert np.median(error[plain]) < 0.01 and np.mean(error[plain] < 0.05) > 0.6, np.percentile(error[plain], [50, 90])
+
+
+def test_neighbours_correction_is_the_median_of_the_aligned_ones_within_reach():
+    aligned = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0], [5.0, 12.0]])
+    correction = np.array([[0.2, -0.1], [0.3, -0.1], [0.2, 0.0], [0.25, -0.2], [5.0, 5.0]])   # one wild
+    points = np.array([[5.0, 5.0], [5.0 + CORRECTION_REACH_PX + 20, 5.0], [-CORRECTION_REACH_PX + 1, 0.0]])
+    out = neighbours_correction(points, aligned, correction)
+    np.testing.assert_allclose(out[0], [0.25, -0.1])               # the median of all five
+    np.testing.assert_array_equal(out[1], [0.0, 0.0])               # none within reach
+    np.testing.assert_array_equal(out[2], [0.0, 0.0])               # one only: too few to say
+    assert neighbours_correction(points, aligned[:2], correction[:2]).tolist() == [[0.0, 0.0]] * 3
+    assert neighbours_correction(np.zeros((0, 2)), aligned, correction).shape == (0, 2)
 
 
 def test_a_wrong_match_breaks_local_rigidity():
