@@ -173,7 +173,7 @@ def neighbours_correction(points: np.ndarray, aligned: np.ndarray, correction: n
     lie within CORRECTION_REACH_PX. DIS's flow falls short of the motion, and a lamp's shading
     moves it, the same way over a neighbourhood; a plain patch cannot be aligned itself, so it
     takes what its aligned neighbours needed. Against keeping its pair as found (run + eval):
-    `touch` over five seeds 0.632 -> 0.606 mm, `orbit` 0.54 -> 0.53 (ATE 0.183 -> 0.163 cm),
+    `touch` over five seeds 0.634 -> 0.606 mm, `orbit` 0.54 -> 0.53 (ATE 0.183 -> 0.163 cm),
     `release` over ten seeds 1.095 -> 1.076; dropping those pairs instead cost `release` 1.188."""
     out = np.zeros((len(points), 2))
     if len(points) == 0 or len(aligned) < CORRECTION_MIN:
