@@ -342,8 +342,8 @@ def align(previous_grey: np.ndarray, current_grey: np.ndarray, pa: np.ndarray, p
     where the patch cannot say (too little texture; too little of it on its centre's surface);
     FAILED where it is textured yet converges to nothing within max_shift_px of pb. `depth`
     (H, W) metres of the previous image (0: none) keeps the patch to the pixels within
-    depth_tol_m of its centre's depth; None: every pixel. `prior` (with `depth`): the predicted motion of the previous
-    camera's points, whose relief the warp then follows (MotionPrior)."""
+    depth_tol_m of its centre's depth; None: every pixel. `prior` (with `depth`): the predicted
+    motion of the previous camera's points, whose relief the warp then follows (MotionPrior)."""
     if len(pa) == 0:
         return np.zeros((0, 2)), np.zeros(0, np.int8)
     pa, pb = np.asarray(pa, np.float64), np.asarray(pb, np.float64)
