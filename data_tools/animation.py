@@ -16,6 +16,8 @@ class Animation:
     moving: np.ndarray                        # (V,) bool, True where the vertex moves in the scene
     positions: Callable[[int], np.ndarray]    # frame -> (V, 3) scene-frame vertices
     camera: Callable[[int], np.ndarray]       # frame -> 4x4 camera-to-scene
+    # material points (N, 3) -> True where the surface has no texture (texture.shade); None: none
+    plain: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ as flesh does (Scene.max_strain).
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -256,6 +257,18 @@ def limb_wall() -> Animation:
     return Animation(faces, part, is_limb, positions, static_camera)
 
 
+def _wall(material: np.ndarray) -> np.ndarray:     # limb-wall's wall lies 1.18-1.42 m away, its limb nearer
+    return material[:, 2] > 1.1
+
+
+def limb_plainwall() -> Animation:        # a patterned sleeve before a white wall: the only texture moves
+    return replace(limb_wall(), plain=_wall)
+
+
+def plainlimb_wall() -> Animation:        # DIS's flow on the plain limb is the wall's, carried over its outline
+    return replace(limb_wall(), plain=lambda material: ~_wall(material))
+
+
 def free_sheet() -> Animation:
     width, height = 0.5, 0.4
     rest, faces = meshes.plane(width, height, SPACING_M)
@@ -376,6 +389,8 @@ SCENES = {s.name: s for s in (
           "about its normal (depth fixes only distance and tilt: colour only)", 40, wall_slide),
     Scene("limb-wall", "a 9 cm thick limb bending 100 deg and back in front of a lone flat wall, still camera", 40,
           limb_wall, max_strain=0.23),
+    Scene("limb-plainwall", "limb-wall, its wall plain (no texture)", 40, limb_plainwall, max_strain=0.23),
+    Scene("plainlimb-wall", "limb-wall, its limb plain (no texture)", 40, plainlimb_wall, max_strain=0.23),
     Scene("free-sheet", "a free sheet (no still edge) turning slowly, waves travelling across it", 40, free_sheet),
     Scene("table", "a person at a table moving both arms over it (touching it), still camera overhead", 90, table),
     Scene("twist-limb", "a smooth limb (8 cm thick) before a wall turning about its own axis and sliding along it "

@@ -161,7 +161,7 @@ def generate(scene: str, out_dir, frames: int | None = None, size=(640, 480), no
             # synth wrote colour.
             color = shade(depth, normal_map, material_map,
                           np.random.default_rng([seed, i, 1]) if noise == "kinect" else None,
-                          light=light_direction(light, camera_to_world[i], camera_to_world[0]))
+                          light=light_direction(light, camera_to_world[i], camera_to_world[0]), plain=anim.plain)
             if noise == "kinect":
                 rng = np.random.default_rng([seed, i])
                 depth = kinect_noise(depth, incidence_cosine(normal_map, intr), intr, rng)

@@ -9,6 +9,8 @@ frame's camera (fixed in the room: a still surface keeps its shading however the
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 BACKGROUND_RGB = (0.25, 0.25, 0.27)          # where no surface is drawn (depth 0)
@@ -17,6 +19,7 @@ LIGHTS = ("camera", "room")
 AMBIENT = 0.35
 CELLS_M = (0.02, 0.07)
 NOISE_LEVELS = 2.0                           # sigma of the 8-bit sensor noise
+PLAIN_ALBEDO = 0.6                           # a surface without texture (a white wall, a plain sleeve)
 
 
 def _hash(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, seed: int) -> np.ndarray:
@@ -67,16 +70,21 @@ def light_direction(light: str, camera_to_world: np.ndarray, first_camera_to_wor
 
 
 def shade(depth_m: np.ndarray, normal_map: np.ndarray, material_map: np.ndarray, rng: np.random.Generator | None,
-          seed: int = 0, light: np.ndarray | None = None) -> np.ndarray:
+          seed: int = 0, light: np.ndarray | None = None,
+          plain: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
     """(H, W, 3) uint8 RGB of one frame: albedo x (ambient + Lambert) where depth > 0, the
     background elsewhere, plus Gaussian 8-bit noise when `rng` is given. `light`: the direction
-    towards the lamp in the camera frame (light_direction; None: the lamp beside the camera)."""
+    towards the lamp in the camera frame (light_direction; None: the lamp beside the camera).
+    `plain` (material points -> bool): where the albedo is PLAIN_ALBEDO grey, not the texture."""
     h, w = depth_m.shape
     image = np.empty((h, w, 3))
     image[:] = BACKGROUND_RGB
     drawn = depth_m > 0
     lambert = np.clip(normal_map[drawn] @ (LIGHT_DIRECTION if light is None else light), 0.0, None)
-    image[drawn] = albedo(material_map[drawn], seed) * (AMBIENT + (1 - AMBIENT) * lambert)[:, None]
+    paint = albedo(material_map[drawn], seed)
+    if plain is not None:
+        paint[plain(material_map[drawn])] = PLAIN_ALBEDO
+    image[drawn] = paint * (AMBIENT + (1 - AMBIENT) * lambert)[:, None]
     image *= 255.0
     if rng is not None:
         image += rng.normal(0.0, NOISE_LEVELS, image.shape)

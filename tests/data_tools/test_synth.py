@@ -225,6 +225,28 @@ def test_texture_moves_with_the_material(small):
     assert (blank == np.rint(255 * np.array(texture_background()))).all()
 
 
+def test_plain_material_is_one_grey_under_the_light(tmp_path):
+    """limb-plainwall and plainlimb-wall: limb-wall's frames with the wall's or the limb's
+    texture left out; only the plain surface's colour differs (one albedo, shaded), the depth
+    and ground truth are limb-wall's."""
+    from surfelwarp.data_tools.texture import PLAIN_ALBEDO
+
+    frames = {}
+    for name in ("limb-wall", "limb-plainwall", "plainlimb-wall"):
+        out = synth.generate(name, tmp_path / name, frames=1, size=(160, 120), noise="none")
+        depth = cv2.imread(str(out / "frame-000000.depth.png"), cv2.IMREAD_UNCHANGED)
+        rgb = cv2.imread(str(out / "frame-000000.color.png")).astype(float)
+        frames[name] = depth, rgb.mean(-1), np.ptp(rgb, axis=-1)
+    depth, _, _ = frames["limb-wall"]
+    wall, limb = depth >= 1100, (depth > 0) & (depth < 1100)
+    assert limb.sum() > 300 and wall.sum() > 10000
+    for name, plain in (("limb-plainwall", wall), ("plainlimb-wall", limb)):
+        d, grey, spread = frames[name]
+        assert np.array_equal(d, depth)
+        assert spread[plain].max() <= 1 and np.all(grey[plain] <= 255 * PLAIN_ALBEDO + 1)     # grey, shaded
+        assert np.std(grey[~plain & (depth > 0)]) > 20                                        # the other textured
+
+
 def texture_background():
     from surfelwarp.data_tools.texture import BACKGROUND_RGB
     return BACKGROUND_RGB
