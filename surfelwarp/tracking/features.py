@@ -151,42 +151,59 @@ def refine(previous_grey: np.ndarray | None, current_grey: np.ndarray | None, pa
     metres, 0: none), each moved first as `prior` predicts (patch_align.MotionPrior). A pair
     whose textured patch matches nothing within refine_max_px of pb is wrong and dropped
     (keeping those lost the track of `fast`, EPE 0.9 -> 10.9 mm); one whose patch cannot say is
-    kept, at a depth edge as found, a plain one moved by its aligned neighbours' correction
-    (neighbours_correction)."""
+    kept at a depth edge as found; a plain one is moved by the correction of the aligned pairs
+    on its surface around it, or dropped without them (neighbours_correction)."""
     if params.refine_radius_px == 0 or len(pa) == 0 or previous_grey is None or current_grey is None:
         return pb, np.ones(len(pa), bool)
     moved, status = align(previous_grey, current_grey, pa, pb, params.refine_radius_px, previous_depth,
                           params.refine_depth_m, params.refine_max_px, prior=prior)
     plain, aligned = np.flatnonzero(status == PLAIN), np.flatnonzero(status == ALIGNED)
-    moved[plain] += neighbours_correction(pa[plain], pa[aligned], moved[aligned] - pb[aligned])
-    return moved.astype(np.float32), status != FAILED
+    depth = None if previous_depth is None else pixel_values(pa, previous_depth)
+    correction, vouched = neighbours_correction(pa[plain], pa[aligned], moved[aligned] - pb[aligned],
+                                                None if depth is None else (depth[plain], depth[aligned]),
+                                                params.refine_depth_m)
+    moved[plain] += correction
+    keep = status != FAILED
+    keep[plain[~vouched]] = False
+    return moved.astype(np.float32), keep
 
 
 CORRECTED_BY = 8            # a plain patch's pair takes the median correction of up to this many
-CORRECTION_REACH_PX = 24.0  # aligned pairs within this distance (three steps of the flow's grid),
-CORRECTION_MIN = 3          # and none with fewer of them
+CORRECTION_REACH_PX = 24.0  # aligned pairs on its surface within this distance (three steps of the
+CORRECTION_MIN = 3          # flow's grid), and is dropped with fewer of them
 
 
-def neighbours_correction(points: np.ndarray, aligned: np.ndarray, correction: np.ndarray) -> np.ndarray:
-    """(n, 2) the median `correction` (the refinement's move of each `aligned` pair, from where it
-    was found) of the aligned pairs nearest each of `points`: 0 where fewer than CORRECTION_MIN
-    lie within CORRECTION_REACH_PX. DIS's flow falls short of the motion, and a lamp's shading
-    moves it, the same way over a neighbourhood; a plain patch cannot be aligned itself, so it
-    takes what its aligned neighbours needed. Against keeping its pair as found (run + eval):
-    `touch` over five seeds 0.634 -> 0.606 mm, `orbit` 0.54 -> 0.53 (ATE 0.183 -> 0.163 cm),
-    `release` over ten seeds 1.095 -> 1.076; dropping those pairs instead cost `release` 1.188."""
-    out = np.zeros((len(points), 2))
+def neighbours_correction(points: np.ndarray, aligned: np.ndarray, correction: np.ndarray,
+                          depths: tuple[np.ndarray, np.ndarray] | None = None, depth_tol_m: float = 0.03
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """((n, 2) the median `correction` (the refinement's move of each `aligned` pair, from where
+    it was found) of the aligned pairs nearest each of `points`, and whether CORRECTION_MIN of
+    them lie within CORRECTION_REACH_PX (elsewhere the correction is 0)). `depths` (of points,
+    of aligned; metres, 0: none) keeps the neighbours to those within depth_tol_m of a point's
+    surface. DIS's flow falls short of the motion, and a lamp's shading moves it, the same way
+    over a neighbourhood; a plain patch cannot be aligned itself, so it takes what its aligned
+    neighbours needed: against keeping its pair as found, `touch` over five seeds 0.634 ->
+    0.606 mm, `orbit` 0.54 -> 0.53. Without them on its own surface, its flow is what DIS
+    carried over from the textured surfaces around, whatever their motion, and refine drops it:
+    `limb-plainwall`'s plain wall moved with the textured limb before it (mean EPE 128.9 mm;
+    0.25 with the colour pose's cover test, tracker.py; depth alone 0.85). Dropping every plain
+    pair instead cost `release` over ten seeds 1.095 -> 1.188."""
+    out, vouched = np.zeros((len(points), 2)), np.zeros(len(points), bool)
     if len(points) == 0 or len(aligned) < CORRECTION_MIN:
-        return out
+        return out, vouched
     k = min(CORRECTED_BY, len(aligned))
     d, nb = KDTree(np.ascontiguousarray(aligned, np.float64)).query(np.ascontiguousarray(points, np.float64), k=k,
                                                                    distance_upper_bound=CORRECTION_REACH_PX)
     d, nb = d.reshape(len(points), k), nb.reshape(len(points), k)
+    nb = np.minimum(nb, len(aligned) - 1)
     near = np.isfinite(d)
-    values = np.where(near[..., None], np.asarray(correction, np.float64)[np.minimum(nb, len(aligned) - 1)], np.nan)
-    enough = near.sum(1) >= CORRECTION_MIN
-    out[enough] = np.nanmedian(values[enough], axis=1)
-    return out
+    if depths is not None:
+        z, z_aligned = (np.asarray(a, np.float64) for a in depths)
+        near &= (z[:, None] > 0) & (np.abs(z_aligned[nb] - z[:, None]) < depth_tol_m)
+    values = np.where(near[..., None], np.asarray(correction, np.float64)[nb], np.nan)
+    vouched = near.sum(1) >= CORRECTION_MIN
+    out[vouched] = np.nanmedian(values[vouched], axis=1)
+    return out, vouched
 
 
 def match_descriptors(a: Keypoints, b: Keypoints, params: FeatureParams) -> tuple[np.ndarray, np.ndarray]:

@@ -117,8 +117,9 @@ def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window,
     fx, fy = ax - np.floor(ax), ay - np.floor(ay)
     T = np.empty(S)
     w = np.empty(S)
+    inner = np.empty(S)      # w away from depth edges, where the texture is the surface's own
     SD = np.empty((6, S))
-    zc = _nearest_value(depth, ax, ay)
+    zc = abs(_nearest_value(depth, ax, ay))      # negative beside a depth edge (off_edges)
     kept = total = 0.0
     for s in range(S):
         x, y = ax + ox[s], ay + oy[s]
@@ -126,11 +127,12 @@ def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window,
         T[s] = _blend(previous, r0, r1, c0, c1, fx, fy)
         SD[2, s] = _blend(gx, r0, r1, c0, c1, fx, fy)
         SD[5, s] = _blend(gy, r0, r1, c0, c1, fx, fy)
-        w[s] = window[s]
+        w[s] = inner[s] = window[s]
         if depth_tol_m > 0:
             z = _nearest_value(depth, x, y)
-            if z <= 0 or abs(z - zc) >= depth_tol_m:
+            if z == 0 or abs(abs(z) - zc) >= depth_tol_m:
                 w[s] = 0.0
+            inner[s] = w[s] if z > 0 else 0.0
         kept += w[s]
         total += window[s]
     if kept < MIN_SURFACE_SHARE * total:
@@ -139,17 +141,20 @@ def _align_one(previous, gx, gy, current, depth, ax, ay, bx, by, ox, oy, window,
     E = plane_basis(w, ox, oy)
     Tn = np.empty(S)
     sd = normalise(T, w, E, Tn)
-    gxx = gxy = gyy = 0.0
+    gxx = gxy = gyy = ixx = ixy = iyy = 0.0
     for s in range(S):
         tx, ty = SD[2, s], SD[5, s]
         gxx += w[s] * tx * tx
         gxy += w[s] * tx * ty
         gyy += w[s] * ty * ty
+        ixx += inner[s] * tx * tx
+        ixy += inner[s] * tx * ty
+        iyy += inner[s] * ty * ty
         tx, ty = tx / sd, ty / sd
         SD[0, s], SD[1, s], SD[2, s] = tx * ox[s], tx * oy[s], tx
         SD[3, s], SD[4, s], SD[5, s] = ty * ox[s], ty * oy[s], ty
     weakest = _weakest(gxx, gxy, gyy)
-    if weakest <= (NOISE_GREY / PLAIN_PX) ** 2:
+    if _weakest(ixx, ixy, iyy) <= (NOISE_GREY / PLAIN_PX) ** 2:
         result[0], result[1], result[2] = bx, by, PLAIN
         return
     raw = SD.copy()
@@ -213,7 +218,7 @@ def _prior_shifts(depth, ax, ay, ox, oy, w, zc, prior, dx, dy):
     for s in range(len(ox)):
         if w[s] > 0:
             x, y = ax + ox[s], ay + oy[s]
-            u, v = _predicted(x, y, _nearest_value(depth, x, y), prior)
+            u, v = _predicted(x, y, abs(_nearest_value(depth, x, y)), prior)
             if np.isfinite(u) and np.isfinite(v):
                 dx[s], dy[s] = (u - x) - (cu - ax), (v - y) - (cv - ay)
                 largest = max(largest, abs(dx[s]), abs(dy[s]))
@@ -334,6 +339,21 @@ def _gradients(image: np.ndarray, dtype=np.float64) -> tuple[np.ndarray, np.ndar
     return cv2.Scharr(image, depth, 1, 0) / dtype(32.0), cv2.Scharr(image, depth, 0, 1) / dtype(32.0)
 
 
+def off_edges(depth: np.ndarray, depth_tol_m: float) -> np.ndarray:
+    """(H, W) float64 `depth` (metres, 0: none) negated at the pixels beside a depth edge: those
+    whose 3x3 neighbours with depth span depth_tol_m or more. Their gradient (Scharr's 3x3)
+    mixes the colours of both surfaces, so whether a patch has texture is judged without them:
+    a plain limb before a textured wall had textured patches along its outline, aligned on the
+    wall's texture. They still count in the alignment of a textured patch (left out there too,
+    `fast-wall`'s ball lost the outline's contrast: moving EPE seeds 0-2 1.49 / 2.58 / 2.35 ->
+    2.16 / 3.69 / 3.32 mm)."""
+    z = np.asarray(depth, np.float32)
+    kernel = np.ones((3, 3), np.uint8)
+    span = cv2.dilate(z, kernel) - cv2.erode(np.where(z > 0, z, np.float32(np.inf)), kernel)
+    d = np.asarray(depth, np.float64)
+    return np.where(span < depth_tol_m, d, -d)
+
+
 def align(previous_grey: np.ndarray, current_grey: np.ndarray, pa: np.ndarray, pb: np.ndarray, radius_px: int,
           depth: np.ndarray | None = None, depth_tol_m: float = 0.03, max_shift_px: float = 2.0, iters: int = 10,
           prior: MotionPrior | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -359,7 +379,7 @@ def align(previous_grey: np.ndarray, current_grey: np.ndarray, pa: np.ndarray, p
     previous = np.asarray(previous_grey[box], np.float32)     # 8-bit grey: exact in float32
     gx, gy = _gradients(previous, np.float32)
     use_depth = depth is not None
-    depth = np.ascontiguousarray(depth[box], np.float64) if use_depth else np.zeros((1, 1))
+    depth = off_edges(depth[box], depth_tol_m) if use_depth else np.zeros((1, 1))
     ox, oy, window = _patch(radius_px)
     packed = np.zeros(0) if prior is None or not use_depth else prior.packed(lo)
     out = _align(previous, gx, gy, np.asarray(current_grey[box], np.float32), depth, pa - lo, pb - lo, ox, oy,

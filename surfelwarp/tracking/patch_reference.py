@@ -34,15 +34,22 @@ def align_reference(previous_grey: np.ndarray, current_grey: np.ndarray, pa: np.
     X, Y = pa[:, :1] + ox, pa[:, 1:] + oy
     w = np.repeat(window[None], len(pa), 0)
     shifts = np.zeros((2,) + X.shape)
+    inner = w      # w away from depth edges (off_edges): the texture test's
     if depth is not None:
-        z, zc = _nearest(depth, X, Y), _nearest(depth, pa[:, 0], pa[:, 1])[:, None]
+        depth = _off_edges(np.asarray(depth, np.float64), depth_tol_m)
+        signed = _nearest(depth, X, Y)
+        z, zc = np.abs(signed), np.abs(_nearest(depth, pa[:, 0], pa[:, 1]))[:, None]
         w = w * ((z > 0) & (np.abs(z - zc) < depth_tol_m))
+        inner = w * (signed > 0)
         if prior is not None:
             shifts = _prior_shifts_reference(prior, X, Y, z, pa, zc, w)
     gradients = steepest_descent(previous, pa, ox, oy)
-    G = np.einsum("ns,nsi,nsj->nij", w, gradients[..., [2, 5]], gradients[..., [2, 5]])
-    weakest = np.linalg.eigvalsh(G)[:, 0]
-    textured = weakest > (NOISE_GREY / PLAIN_PX) ** 2
+    def weakest_texture(weight):
+        G = np.einsum("ns,nsi,nsj->nij", weight, gradients[..., [2, 5]], gradients[..., [2, 5]])
+        return np.linalg.eigvalsh(G)[:, 0]
+
+    weakest = weakest_texture(w)
+    textured = weakest_texture(inner) > (NOISE_GREY / PLAIN_PX) ** 2
     basis = _plane_basis(w, ox, oy)
     Tn, sd, SD, H = _projected(previous, X, Y, w, basis, gradients)
     # where the slope leaves less than SLOPE_KEEPS of the weakest direction's texture: gain and
@@ -59,6 +66,15 @@ def align_reference(previous_grey: np.ndarray, current_grey: np.ndarray, pa: np.
     moved = np.where((aligned & (warped_step < ACCEPT_PX))[:, None], warped, np.where(aligned[:, None], shift, pb))
     status = np.where(aligned, ALIGNED, np.where(surface & textured, FAILED, np.where(surface, PLAIN, UNALIGNED)))
     return moved, status.astype(np.int8)
+
+
+def _off_edges(depth: np.ndarray, depth_tol_m: float) -> np.ndarray:
+    """Negated where the depths of a pixel's 3x3 neighbours (those with depth) span depth_tol_m
+    or more."""
+    around = np.lib.stride_tricks.sliding_window_view(np.pad(depth, 1, mode="edge"), (3, 3))
+    high = np.where(around > 0, around, -np.inf).max(axis=(-2, -1))
+    low = np.where(around > 0, around, np.inf).min(axis=(-2, -1))
+    return np.where(high - low < depth_tol_m, depth, -depth)
 
 
 def _projected(previous, X, Y, w, basis, gradients):

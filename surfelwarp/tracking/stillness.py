@@ -3,6 +3,7 @@ rest anchors': 1 at rest, 0 released), the weight rigid ICP gives each model pix
 (tracker.Tracker.stillness_map, rigid_weight_map)."""
 from __future__ import annotations
 
+import cv2
 import numba
 import numpy as np
 
@@ -83,3 +84,27 @@ def _weight_map(s, floor, scale, out):
         count += 1
         moving |= x < np.float32(1.0)
     return (total / count if count else 1.0), moving
+
+
+COVER_CELL_PX = 8           # the share is counted on cells of this many pixels a side
+COVER_REACH_PX = 24         # a pair covers the surface within this distance
+
+
+def covered_share(weight: np.ndarray, pixels: np.ndarray) -> float:
+    """The share of a model map's weight (H, W; 0 where empty) within COVER_REACH_PX of any of
+    the pixels (n, 2) (x, y): how much of the still surface rigid ICP weighs colour pairs lie on."""
+    cell = COVER_CELL_PX
+    h, w = weight.shape
+    padded = np.zeros((-(-h // cell) * cell, -(-w // cell) * cell), np.float32)
+    padded[:h, :w] = weight
+    cells = padded.reshape(padded.shape[0] // cell, cell, padded.shape[1] // cell, cell).sum(axis=(1, 3))
+    total = float(cells.sum())
+    if total <= 0 or len(pixels) == 0:
+        return 0.0
+    at = np.floor(np.asarray(pixels, np.float64) / cell).astype(np.int64)
+    inside = (at[:, 0] >= 0) & (at[:, 0] < cells.shape[1]) & (at[:, 1] >= 0) & (at[:, 1] < cells.shape[0])
+    marked = np.zeros(cells.shape, np.uint8)
+    marked[at[inside, 1], at[inside, 0]] = 1
+    reach = COVER_REACH_PX // cell
+    marked = cv2.dilate(marked, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1)))
+    return float((cells * marked).sum()) / total

@@ -14,13 +14,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from surfelwarp.deform.hierarchy import Hierarchy, HierarchyParams, build_hierarchy, with_hierarchy
-from surfelwarp.deform.warp_field import WarpField, to_local, warp
+from surfelwarp.deform.warp_field import WarpField, warp
 from surfelwarp.geometry.camera import Intrinsics
-from surfelwarp.geometry.se3 import fit_rigid, fit_rigid_informed, invert, transform_points
+from surfelwarp.geometry.se3 import invert, transform_points
 from surfelwarp.preprocess import CameraObservation
 from surfelwarp.tracking.anchors import AnchorParams, NodeAnchors, follow_motion, node_depth_m
 from surfelwarp.tracking.degeneracy import HeldDirections
 from surfelwarp.tracking.colour import ColourMatcher
+from surfelwarp.tracking.factoring import factor_rigid_motion
 from surfelwarp.tracking.features import AnchoredMatches, FeatureParams, ModelView
 from surfelwarp.tracking.ahead import FoundAhead
 from surfelwarp.tracking.association import DepthTargets
@@ -28,7 +29,8 @@ from surfelwarp.tracking.free_space import FreeSpace
 from surfelwarp.tracking.gauss_newton import NonRigidParams, NonRigidResult, solve_nonrigid
 from surfelwarp.tracking.prediction import NodeMotion, carried_nodes, carry_on
 from surfelwarp.tracking.rigid_icp import PointPairs, RigidParams, RigidResult, rigid_icp
-from surfelwarp.tracking.stillness import point_stillness, rigid_weight, rigid_weight_map, stillness_map
+from surfelwarp.tracking.stillness import (covered_share, point_stillness, rigid_weight, rigid_weight_map,
+                                          stillness_map)
 
 
 CAMERAS = ("moving", "static")
@@ -69,6 +71,12 @@ class TrackingParams:
     # False: the pose from depth alone. (Beside the depth in every direction they cost orbit's
     # ATE, 0.41 -> 0.48 cm, and the shirt pair 2.9 mm.)
     colour_pose: bool = True
+    # ... where they lie over at least this share of the still surface in view (as rigid ICP
+    # weighs it, stillness.covered_share; 0: always): the pairs of a textured limb sliding along
+    # itself before a plain wall (a share of ~0.05) moved the camera with it (`limb-plainwall`:
+    # ATE 15.4 cm at 0, 0.03 at 0.3; depth alone 0.05); at 0.5 a wall 40 % textured was left to
+    # depth (`wall-slide` so altered: ATE 17.1 cm, 0.03 at 0.3).
+    colour_pose_min_cover: float = 0.3
     # Motion beyond the depth term's reach (the DeepDeform shirt pair: 20 cm between its two
     # frames): when the colour pairs lie farther than this from where the last warp and the
     # pose put them (median), a first solve led by them (at lead_feature_weight, with the plain
@@ -83,7 +91,7 @@ class TrackingParams:
     predict_min_step_sigmas: float = 2.0
 
     CHOICES = {"camera": CAMERAS}
-    UNIT = {"released_rigid_weight", "min_still_share", "predict_node_motion"}
+    UNIT = {"released_rigid_weight", "min_still_share", "predict_node_motion", "colour_pose_min_cover"}
     ZERO_OK = UNIT | {"predict_min_step_sigmas"}
 
 
@@ -101,32 +109,6 @@ def warped_matches(matches: AnchoredMatches, surfels: SurfelSet, field: WarpFiel
     surfel (what rigid ICP's colour pairs and the pairs-led start compare with the frame)."""
     i = matches.index
     return warp(matches.ref_points, None, surfels.knn[i], surfels.weights[i], field)[0]
-
-
-def factor_rigid_motion(field: WarpField, node_weights: np.ndarray | None = None,
-                        rest_points: np.ndarray | None = None,
-                        held: HeldDirections | None = None) -> tuple[WarpField, np.ndarray]:
-    """Split W = A o W' with A the rigid motion best fitting the nodes' displacements from
-    rest_points (default: the nodes themselves), weighted by node_weights: (M,) weights, or
-    (M, 3, 3) information (each node counts along the directions its data measures,
-    se3.fit_rigid_informed); without its components along the `held` directions (they stay
-    in the field: the camera does not move where the data cannot say).
-
-    DQB commutes with a common left factor, so W' = A^-1 o W exactly. Without this, rigid
-    tracking error that the non-rigid solve absorbs would stay in the warp field forever and
-    the camera pose would drift from the composite motion that is actually tracked. Weighted by
-    data support, A is the seen nodes' common motion even when most nodes are out of view (a
-    room); fitted to every node alike it is only part of it, and the rest stays in their
-    transforms. Weighted by information, a node's slide along its surface, which its depth
-    does not see (the regulariser's pull, a colour pair's), stays in the field too.
-    """
-    source = field.nodes if rest_points is None else rest_points
-    fit = fit_rigid_informed if node_weights is not None and np.ndim(node_weights) == 3 else fit_rigid
-    A = fit(source, field.live_nodes(), node_weights)
-    if held is not None:
-        A = held.project(A)
-    G = invert(A) @ field.global_transforms()
-    return field.with_transforms(to_local(G, field.nodes)), A
 
 
 @dataclass(frozen=True)
@@ -232,6 +214,10 @@ class Tracker:
         self._scene_motion, self._lu_fallbacks = None, 0
         weight, share = (None, 1.0) if stillness is None else rigid_weight_map(stillness, p.released_rigid_weight)
         self._held, self._camera_moves = None, p.camera == "moving" and share >= p.min_still_share
+        if pairs is not None and stillness is not None and covered_share(
+                np.isfinite(stillness) if weight is None else weight,
+                self.intrinsics.project(pairs.camera)) < p.colour_pose_min_cover:
+            pairs = None
         # The colour pairs inform the camera's pose; where it is held, ICP's motion is the
         # scene's, only the non-rigid solve's second start, and they are left to that solve.
         result = rigid_icp(model_vertex, model_normal, self.T_camera_to_world, obs, self._T_guess, p.rigid,

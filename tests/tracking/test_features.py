@@ -141,10 +141,11 @@ def test_refinement_keeps_what_it_cannot_judge_and_drops_what_matches_nothing():
     params = FeatureParams()
     refined, keep = refine(grey(rgb), grey(warped), pa, start, params)
     assert keep.all() and np.all(np.linalg.norm(refined - truth, axis=1) < 0.3 * np.linalg.norm(start - truth, axis=1))
-    # a plain patch cannot say: kept where it was; a textured one that matches nothing near: dropped
+    # a plain patch cannot say, and with no aligned pair around to say for it, it is dropped; a
+    # textured one that matches nothing near: dropped
     plain = np.full_like(rgb, 128)
     moved, keep = refine(grey(plain), grey(warped), pa, start, params)
-    assert keep.all() and np.array_equal(moved, start)
+    assert not keep.any() and np.array_equal(moved, start)
     _, keep = refine(grey(rgb), grey(np.roll(warped, 40, axis=1)), pa, start, params)
     assert not keep.any()
     moved, keep = refine(grey(rgb), grey(warped), pa, start, replace(params, refine_radius_px=0))
@@ -166,23 +167,46 @@ def test_plain_pairs_take_their_aligned_neighbours_correction():
     plain = status == PLAIN
     refined, keep = refine(grey(rgb), grey(shifted), pa, start, FeatureParams())
     error = np.linalg.norm(refined - truth, axis=1)
-    assert keep.all() and plain.sum() >= 30
+    assert keep[~plain].all() and plain.sum() >= 40
     assert np.median(error[status == ALIGNED]) < 0.01
     # found 0.5 px off; the ones beside the square's edge, whose patches barely reach the texture,
-    # hold their start, and the plain pairs nearest them move less
-    assert np.median(error[plain]) < 0.01 and np.mean(error[plain] < 0.05) > 0.6, np.percentile(error[plain], [50, 90])
+    # hold their start, and the plain pairs nearest them move less; those farther than
+    # CORRECTION_REACH_PX from three aligned ones (the square's middle) are dropped
+    kept = plain & keep
+    assert 30 <= kept.sum() < plain.sum()
+    assert np.median(error[kept]) < 0.01 and np.mean(error[kept] < 0.05) > 0.6, np.percentile(error[kept], [50, 90])
+    # the square 10 cm nearer than the plane: its aligned neighbours lie across a depth edge, and
+    # their correction is not its pairs' (DIS's flow on a plain surface is carried over from the
+    # textured ones around, whatever their motion): every pair in it is dropped
+    depth = np.ones(rgb.shape[:2])
+    depth[200:260, 280:340] = 0.9
+    inside = (pa[:, 0] >= 280) & (pa[:, 0] < 340) & (pa[:, 1] >= 200) & (pa[:, 1] < 260)
+    _, keep = refine(grey(rgb), grey(shifted), pa, start, FeatureParams(), depth)
+    assert inside.sum() == 49 and not keep[inside].any() and keep[~inside].mean() > 0.99
+    # at the plane's depth, as without depth
+    _, keep_flat = refine(grey(rgb), grey(shifted), pa, start, FeatureParams(), np.ones(rgb.shape[:2]))
+    assert np.array_equal(keep_flat, kept | ~plain)
 
 
 def test_neighbours_correction_is_the_median_of_the_aligned_ones_within_reach():
     aligned = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0], [5.0, 12.0]])
     correction = np.array([[0.2, -0.1], [0.3, -0.1], [0.2, 0.0], [0.25, -0.2], [5.0, 5.0]])   # one wild
     points = np.array([[5.0, 5.0], [5.0 + CORRECTION_REACH_PX + 20, 5.0], [-CORRECTION_REACH_PX + 1, 0.0]])
-    out = neighbours_correction(points, aligned, correction)
+    out, vouched = neighbours_correction(points, aligned, correction)
     np.testing.assert_allclose(out[0], [0.25, -0.1])               # the median of all five
     np.testing.assert_array_equal(out[1], [0.0, 0.0])               # none within reach
     np.testing.assert_array_equal(out[2], [0.0, 0.0])               # one only: too few to say
-    assert neighbours_correction(points, aligned[:2], correction[:2]).tolist() == [[0.0, 0.0]] * 3
-    assert neighbours_correction(np.zeros((0, 2)), aligned, correction).shape == (0, 2)
+    assert vouched.tolist() == [True, False, False]
+    out, vouched = neighbours_correction(points, aligned[:2], correction[:2])
+    assert out.tolist() == [[0.0, 0.0]] * 3 and not vouched.any()
+    out, vouched = neighbours_correction(np.zeros((0, 2)), aligned, correction)
+    assert out.shape == (0, 2) and vouched.shape == (0,)
+    # on their surface only: with the point 5 cm nearer than three of the five, two remain
+    depths = (np.array([1.0, 1.0, 1.0]), np.array([1.0, 1.0, 1.05, 1.05, 1.05]))
+    out, vouched = neighbours_correction(points, aligned, correction, depths, 0.03)
+    assert not vouched[0] and np.array_equal(out[0], [0.0, 0.0])
+    out, vouched = neighbours_correction(points, aligned, correction, (depths[0], np.ones(5)), 0.03)
+    assert vouched[0] and np.allclose(out[0], [0.25, -0.1])
 
 
 def test_a_wrong_match_breaks_local_rigidity():

@@ -264,3 +264,45 @@ def test_the_rigid_weight_map_is_numpys_weighting_of_the_shown_pixels():
     assert share == 0.5 and weight[0, 0] == np.float32(0.25) and weight[1, 2] == 1.0 and weight.sum() == 1.25
     for still in (np.where(np.isnan(s), np.nan, 1.0), np.full((4, 4), np.nan)):
         assert rigid_weight_map(still.astype(np.float32), floor) == (None, 1.0)
+
+
+def test_covered_share_is_the_weight_within_reach_of_the_pairs():
+    from surfelwarp.tracking.stillness import COVER_CELL_PX, COVER_REACH_PX, covered_share
+    weight = np.ones((480, 640), np.float32)
+    y, x = np.mgrid[0:480:16, 0:320:16]
+    left = np.stack([x.ravel(), y.ravel()], -1) + 0.5
+    # pairs in the cells 0-38 of each row and those within 3 cells: 42 of 80; moved right by
+    # 320 px, cells 40-78 and 37-79: 43
+    assert COVER_CELL_PX == 8 and COVER_REACH_PX == 24
+    assert covered_share(weight, left) == pytest.approx(42 / 80)
+    assert covered_share(weight, left + [320.0, 0.0]) == pytest.approx(43 / 80)
+    weight[:, 336:] = 0.0                  # only what is within reach of them weighs
+    assert covered_share(weight, left) == pytest.approx(1.0)
+    assert covered_share(weight, np.zeros((0, 2))) == 0.0 and covered_share(np.zeros((48, 64)), left) == 0.0
+    assert covered_share(weight, np.array([[-50.0, 10.0], [900.0, 10.0]])) == 0.0     # outside the map
+    odd = np.ones((20, 29), np.float32)    # sizes not a multiple of the cell: 3 x 4 cells, all within reach
+    assert covered_share(odd, np.array([[12.0, 10.0]])) == pytest.approx(1.0)
+
+
+def test_colour_pairs_move_the_pose_only_where_they_cover_the_still_surface():
+    """A flat wall's slide is colour's to say (test_rigid_icp), but pairs on a small part of the
+    still surface in view may lie on something sliding along it that the anchors have not seen
+    move (a textured limb before a plain wall): below colour_pose_min_cover of it they are
+    not used, and the pose is held where depth alone holds it."""
+    from surfelwarp.tracking.rigid_icp import PointPairs
+    from test_rigid_icp import INTR as WALL, WALL_SLIDE, pose_error, wall_depth, wall_points
+    first, second = preprocess(wall_depth(np.eye(4)), WALL, 0, 0), preprocess(wall_depth(WALL_SLIDE), WALL, 1, 1)
+    still = np.ones(first.valid.shape, np.float32)
+    world, camera = wall_points(WALL_SLIDE)
+
+    def pose(keep, params=TrackingParams()):
+        tracker = Tracker(WALL, params)
+        pairs = PointPairs(camera[keep], world[keep], np.ones(int(keep.sum())))
+        tracker.rigid(first.vertex_map, first.normal_map, second, still, pairs)
+        return tracker.T_camera_to_world
+
+    corner = (world[:, 0] < -0.2) & (world[:, 1] < -0.1)
+    assert corner.sum() >= 20
+    assert pose_error(pose(np.ones(len(world), bool)), WALL_SLIDE)[0] < 3e-4
+    assert pose_error(pose(corner), np.eye(4))[0] < 1e-4
+    assert pose_error(pose(corner, TrackingParams(colour_pose_min_cover=0.0)), WALL_SLIDE)[0] < 3e-4
