@@ -44,6 +44,7 @@ def align_reference(previous_grey: np.ndarray, current_grey: np.ndarray, pa: np.
         if prior is not None:
             shifts = _prior_shifts_reference(prior, X, Y, z, pa, zc, w)
     gradients = steepest_descent(previous, pa, ox, oy)
+
     def weakest_texture(weight):
         G = np.einsum("ns,nsi,nsj->nij", weight, gradients[..., [2, 5]], gradients[..., [2, 5]])
         return np.linalg.eigvalsh(G)[:, 0]

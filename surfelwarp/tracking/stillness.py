@@ -92,7 +92,8 @@ COVER_REACH_PX = 24         # a pair covers the surface within this distance
 
 def covered_share(weight: np.ndarray, pixels: np.ndarray) -> float:
     """The share of a model map's weight (H, W; 0 where empty) within COVER_REACH_PX of any of
-    the pixels (n, 2) (x, y): how much of the still surface rigid ICP weighs colour pairs lie on."""
+    the pixels (n, 2) (x, y), counted on cells of COVER_CELL_PX pixels: how much of the still
+    surface rigid ICP weighs colour pairs lie on."""
     cell = COVER_CELL_PX
     h, w = weight.shape
     padded = np.zeros((-(-h // cell) * cell, -(-w // cell) * cell), np.float32)
