@@ -81,9 +81,10 @@ def shade(depth_m: np.ndarray, normal_map: np.ndarray, material_map: np.ndarray,
     image[:] = BACKGROUND_RGB
     drawn = depth_m > 0
     lambert = np.clip(normal_map[drawn] @ (LIGHT_DIRECTION if light is None else light), 0.0, None)
-    paint = albedo(material_map[drawn], seed)
+    material = material_map[drawn]
+    paint = albedo(material, seed)
     if plain is not None:
-        paint[plain(material_map[drawn])] = PLAIN_ALBEDO
+        paint[plain(material)] = PLAIN_ALBEDO
     image[drawn] = paint * (AMBIENT + (1 - AMBIENT) * lambert)[:, None]
     image *= 255.0
     if rng is not None:

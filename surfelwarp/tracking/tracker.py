@@ -214,14 +214,14 @@ class Tracker:
         self._scene_motion, self._lu_fallbacks = None, 0
         weight, share = (None, 1.0) if stillness is None else rigid_weight_map(stillness, p.released_rigid_weight)
         self._held, self._camera_moves = None, p.camera == "moving" and share >= p.min_still_share
-        if pairs is not None and stillness is not None and covered_share(
-                np.isfinite(stillness) if weight is None else weight,
-                self.intrinsics.project(pairs.camera)) < p.colour_pose_min_cover:
-            pairs = None
-        # The colour pairs inform the camera's pose; where it is held, ICP's motion is the
-        # scene's, only the non-rigid solve's second start, and they are left to that solve.
+        # The colour pairs inform the camera's pose where they cover its still surface; where it
+        # is held, ICP's motion is the scene's, only the non-rigid solve's second start, and they
+        # are left to that solve.
+        use_pairs = pairs is not None and self._camera_moves and (stillness is None or covered_share(
+            np.isfinite(stillness) if weight is None else weight,
+            self.intrinsics.project(pairs.camera)) >= p.colour_pose_min_cover)
         result = rigid_icp(model_vertex, model_normal, self.T_camera_to_world, obs, self._T_guess, p.rigid,
-                           model_weight_map=weight, pairs=pairs if self._camera_moves else None)
+                           model_weight_map=weight, pairs=pairs if use_pairs else None)
         if not np.isfinite(result.rmse_m):
             self._T_guess = self._T_previous
         elif self._camera_moves:
